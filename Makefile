@@ -1,0 +1,31 @@
+# Two commands do all the set-up: `make train` and `make test`.
+# Each creates .venv/ and installs the package (editable) on first use; the
+# stamp file makes re-runs skip the install unless pyproject.toml changed.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+RUN ?= runs/paper
+ARGS ?=
+
+.PHONY: train test bench eval clean
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+train: $(STAMP)
+	$(PY) -m lazyq_jax train --run-dir $(RUN) $(ARGS)
+
+test: $(STAMP)
+	$(PY) -m pytest -q $(ARGS)
+
+bench: $(STAMP)
+	$(PY) experiments/bench_collect.py
+	$(PY) experiments/bench_neighbours.py
+	$(PY) experiments/bench_lstsq.py
+
+clean:
+	rm -rf $(VENV) build *.egg-info

@@ -1,0 +1,198 @@
+"""Off-policy data collection (paper §V-A-3) and versioned dataset files."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import zipfile
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from lazyq_jax.config import CollectConfig, ConfigError, from_dict, to_dict
+from lazyq_jax.env import PushEnv, disk_moved, push_reward, sample_outside_disk
+from lazyq_jax.types import Transitions
+
+DATASET_FORMAT = "lazyq-jax-dataset"
+DATASET_VERSION = 1
+_FIELDS = {"s": (np.float32, (2,)), "a": (np.float32, (2,)), "s_next": (np.float32, (2,)),
+           "r": (np.float32, ()), "g": (np.float32, ()), "done": (np.bool_, ())}
+
+
+class DatasetError(ValueError):
+    """A dataset file is missing, truncated, foreign, or of another version."""
+
+
+def make_episode_fn(env: PushEnv, config: CollectConfig):
+    """``episode(key) -> dict`` of one random episode, unbatched (vmap it).
+
+    The finger starts uniform in ``[-R, R]^2`` outside the disk (at the origin) and
+    makes ``moves_per_start`` moves in one uniformly random direction; each move is
+    labelled with ``n_goals`` fresh goals uniform in ``[-pi, pi)``.
+    """
+    pc = env.config
+
+    def episode(key):
+        k_start, k_dir, k_goal = jax.random.split(key, 3)
+        start = sample_outside_disk(k_start, jnp.zeros(2), config.start_range, pc.contact_distance)
+        phi = jax.random.uniform(k_dir, (), jnp.float32, -jnp.pi, jnp.pi)
+        action = pc.action_length * jnp.stack([jnp.cos(phi), jnp.sin(phi)])
+        goals = jax.random.uniform(k_goal, (config.moves_per_start, config.n_goals), jnp.float32,
+                                   -jnp.pi, jnp.pi)
+
+        def move(state, _):
+            nxt, delta = env.step(state, action)
+            return nxt, (state.relative, nxt.relative, delta)
+
+        _, (s, s_next, delta) = jax.lax.scan(move, env.reset(start), None,
+                                             length=config.moves_per_start)
+        reward = push_reward(delta[:, None, :], goals, move_threshold=pc.move_threshold,
+                             cos_threshold=pc.cos_threshold)
+        return {"s": s, "a": jnp.broadcast_to(action, s.shape), "s_next": s_next, "delta": delta,
+                "g": goals, "r": reward}
+
+    return episode
+
+
+def _episode_keys(key: jax.Array, first: int, count: int) -> jax.Array:
+    # fold_in by global episode index: the dataset does not depend on the chunking.
+    return jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.arange(first, first + count))
+
+
+def collect(key: jax.Array, config: CollectConfig = CollectConfig(), *, progress: bool = True,
+            env: PushEnv | None = None) -> Transitions:
+    """Simulate the random pushes of §V-A-3 in jitted MJX batches and relabel for many goals.
+
+    Returns ``Transitions`` with ``n_goals`` rows per simulated move, push-major
+    (row ``= move * n_goals + goal``).  ``s`` is the finger position relative to the disk.
+
+    Episodes end at a push that moves the disk (``|delta| >= move_threshold``, which
+    gives reward +-1 for every goal): that push is a terminal transition
+    (``done=True``), and the episode's later moves are never part of the dataset
+    (the paper resets the disk).  So ``N <= n_starts * moves_per_start * n_goals``;
+    with the paper's 5000 x 2 x 100 that is at most 1,000,000 rows.
+
+    Same ``key`` and config give the same dataset, whatever ``chunk_size``.
+    """
+    if not isinstance(config, CollectConfig):
+        raise TypeError(f"collect needs a CollectConfig, got {type(config).__name__}")
+    env = env or PushEnv(config.push)
+    n = config.n_starts
+    n_chunks = math.ceil(n / config.chunk_size)
+    chunk = math.ceil(n / n_chunks)  # equal chunks: one compile, little padding
+    run = jax.jit(jax.vmap(make_episode_fn(env, config)))
+    parts = []
+    bar = tqdm(total=n, desc="collect (episodes)", unit="ep", disable=not progress, leave=False)
+    for c in range(n_chunks):
+        out = jax.device_get(run(_episode_keys(key, c * chunk, chunk)))
+        take = min(chunk, n - c * chunk)
+        parts.append({k: v[:take] for k, v in out.items()})
+        bar.update(take)
+    bar.close()
+    eps = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    return _to_transitions(eps, config)
+
+
+def _to_transitions(eps: dict, config: CollectConfig) -> Transitions:
+    delta = eps["delta"]  # [E, T, 2]
+    if not np.all(np.isfinite(delta)):
+        bad = int(np.sum(~np.all(np.isfinite(delta), axis=-1)))
+        raise FloatingPointError(f"collect: the physics returned non-finite disk positions for "
+                                 f"{bad} pushes; check the PushConfig solver settings")
+    moved = np.asarray(disk_moved(delta, config.push.move_threshold))  # [E, T]
+    # A move exists if no earlier move of its episode moved the disk.
+    ended_before = np.cumsum(moved, axis=1) - moved > 0
+    keep = ~ended_before  # [E, T]
+    n_goals = config.n_goals
+    per_move = lambda x: np.repeat(x[keep], n_goals, axis=0)
+    return Transitions(
+        s=jnp.asarray(per_move(eps["s"]), jnp.float32),
+        a=jnp.asarray(per_move(eps["a"]), jnp.float32),
+        s_next=jnp.asarray(per_move(eps["s_next"]), jnp.float32),
+        r=jnp.asarray(eps["r"][keep].reshape(-1), jnp.float32),
+        g=jnp.asarray(eps["g"][keep].reshape(-1), jnp.float32),
+        done=jnp.asarray(per_move(moved), bool),
+    )
+
+
+def dataset_summary(data: Transitions, n_goals: int) -> dict:
+    """Counts the README reports: moves, moves that moved the disk, rewards per goal octant.
+
+    Octant ``i`` holds the goals within 22.5 degrees of ``45 * i`` degrees: octants
+    0, 2, 4, 6 are centred on the axes (0, 90, 180, 270), the others on diagonals.
+    """
+    r = np.asarray(data.r)
+    octant = np.round(np.asarray(data.g) / (np.pi / 4)).astype(int) % 8
+    per = []
+    for i in range(8):
+        m = octant == i
+        per.append({"centre_deg": 45 * i, "positive": int(np.sum(r[m] > 0)),
+                    "negative": int(np.sum(r[m] < 0)), "zero": int(np.sum(r[m] == 0))})
+    return {"rows": int(r.size), "moves": int(r.size // n_goals),
+            "moves_that_moved_disk": int(np.asarray(data.done).sum() // n_goals),
+            "reward_by_goal_octant": per}
+
+
+def save_dataset(path: str | os.PathLike, data: Transitions, config: CollectConfig,
+                 seed: int | None = None) -> Path:
+    """Write ``data`` with its config and seed to a versioned ``.npz`` (no pickle).
+
+    The write goes to a temporary file first and is renamed into place, so an
+    interrupted save never leaves a half-written dataset under ``path``.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    meta = {"format": DATASET_FORMAT, "version": DATASET_VERSION, "config": to_dict(config),
+            "seed": seed, "rows": data.size}
+    arrays = {name: np.asarray(getattr(data, name)) for name in _FIELDS}
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        np.savez(f, meta=np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays)
+    os.replace(tmp, path)
+    return path
+
+
+def load_dataset(path: str | os.PathLike) -> tuple[Transitions, CollectConfig, int | None]:
+    """Read a file written by :func:`save_dataset`: ``(data, config, seed)``.
+
+    Raises :class:`DatasetError` naming the file for a missing, truncated, foreign
+    or other-version file, or one whose arrays have wrong shapes or dtypes.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: no such dataset file (create one with "
+                           "`python -m lazyq_jax collect`)")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if "meta" not in z.files:
+                raise DatasetError(f"{path}: not a lazyq-jax dataset (no 'meta' entry)")
+            meta = json.loads(z["meta"].tobytes().decode())
+            arrays = {name: z[name] for name in _FIELDS if name in z.files}
+    except DatasetError:
+        raise
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError, KeyError, UnicodeDecodeError) as e:
+        raise DatasetError(f"{path}: unreadable or truncated dataset file ({e})") from e
+    if not isinstance(meta, dict) or meta.get("format") != DATASET_FORMAT:
+        raise DatasetError(f"{path}: not a lazyq-jax dataset (format {meta.get('format')!r})"
+                           if isinstance(meta, dict) else f"{path}: not a lazyq-jax dataset")
+    if meta.get("version") != DATASET_VERSION:
+        raise DatasetError(f"{path}: dataset version {meta.get('version')} but this lazyq-jax "
+                           f"reads version {DATASET_VERSION}; re-collect it")
+    rows = meta.get("rows")
+    for name, (dtype, tail) in _FIELDS.items():
+        if name not in arrays:
+            raise DatasetError(f"{path}: array {name!r} is missing")
+        arr = arrays[name]
+        if arr.dtype != dtype or arr.shape != (rows, *tail):
+            raise DatasetError(f"{path}: array {name!r} has {arr.dtype}{list(arr.shape)}, "
+                               f"expected {np.dtype(dtype)}{[rows, *tail]}")
+    try:
+        config = from_dict(CollectConfig, meta["config"])
+    except (ConfigError, TypeError, KeyError) as e:
+        raise DatasetError(f"{path}: its stored config is not valid here ({e})") from e
+    data = Transitions(**{k: jnp.asarray(v) for k, v in arrays.items()})
+    return data, config, meta.get("seed")

@@ -1,0 +1,43 @@
+"""Pytree containers shared across the pipeline."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+
+@struct.dataclass
+class Transitions:
+    """A batch of goal-relabelled transitions ``d = (s, a, s', r, g, done)`` (paper §III).
+
+    All leaves share the leading dimension ``N``:
+
+    * ``s, a, s_next``: float32 ``[N, 2]``: state (finger position relative to the
+      disk), action (finger move) and next state.
+    * ``r``: float32 ``[N]``: the reward ``R(s, a, g)`` (Eq. 15 for the push task).
+    * ``g``: float32 ``[N]``: the goal, an angle in ``[-pi, pi)``.
+    * ``done``: bool ``[N]``: terminal transition (not bootstrapped).
+
+    Nothing here is specific to the push task: any ``Transitions`` with these
+    shapes works with the lazy core and training code.
+    """
+
+    s: jax.Array
+    a: jax.Array
+    s_next: jax.Array
+    r: jax.Array
+    g: jax.Array
+    done: jax.Array
+
+    @property
+    def size(self) -> int:
+        return int(self.r.shape[0])
+
+    def astype_canonical(self) -> "Transitions":
+        """The canonical dtypes (float32 arrays, bool ``done``)."""
+        f = lambda x: jnp.asarray(x, jnp.float32)
+        return Transitions(
+            s=f(self.s), a=f(self.a), s_next=f(self.s_next), r=f(self.r), g=f(self.g),
+            done=jnp.asarray(self.done, bool),
+        )
