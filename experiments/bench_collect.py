@@ -1,0 +1,99 @@
+"""MJX data collection vs native MuJoCo on the same pushes (issue: the push world, §4).
+
+For each batch size, the same finger starts and moves are simulated by
+``jit(vmap(PushEnv.step))`` (MJX, JAX implementation) and by ``mujoco.rollout``
+(native, 1 and 2 threads).  Prints pushes/s, physics steps/s, the MJX/native
+ratio and the largest difference of final disk positions, then the jit compile
+time of the collection function and one paper-scale ``collect`` call.
+
+    .venv/bin/python experiments/bench_collect.py [--batches 1024 4096 16384] [--repeats 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from lazyq_jax.config import CollectConfig
+from lazyq_jax.data import _episode_keys, collect, make_episode_fn
+from lazyq_jax.env import PushEnv
+from lazyq_jax.env.native import native_push
+
+
+def pushes(rng, batch, contact):
+    """Starts and moves like the collection's (``contact=False``), or all aimed at the disk."""
+    if contact:
+        ang = rng.uniform(-np.pi, np.pi, batch)
+        start = rng.uniform(0.32, 0.4, batch)[:, None] * np.stack([np.cos(ang), np.sin(ang)], 1)
+        turn = ang + np.pi + rng.uniform(-0.7, 0.7, batch)
+    else:
+        start = rng.uniform(-1, 1, (batch * 2, 2))
+        start = start[np.linalg.norm(start, axis=1) > 0.31][:batch]
+        turn = rng.uniform(-np.pi, np.pi, batch)
+    return start.astype(np.float32), np.stack([np.cos(turn), np.sin(turn)], 1).astype(np.float32)
+
+
+def timed(fn, repeats):
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times), out
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--batches", type=int, nargs="+", default=[1024, 4096, 16384])
+    ap.add_argument("--repeats", type=int, default=3)
+    args = ap.parse_args()
+
+    env = PushEnv()
+    steps = env.config.substeps
+    step = jax.jit(jax.vmap(env.step))
+    print(f"jax {jax.__version__} on {jax.devices()[0].platform} x{jax.local_device_count()}, "
+          f"mujoco {mujoco.__version__}; {steps} physics steps per push")
+    print(f"{'pushes':>7} {'set':>8} | {'MJX pushes/s':>12} {'steps/s':>9} | {'native1 st/s':>12} "
+          f"{'native2 st/s':>12} | {'MJX/nat2':>8} {'MJX/nat1':>8} | {'max |disk diff|':>15} {'moved':>6}")
+    rng = np.random.default_rng(0)
+    for batch in args.batches:
+        for contact in (False, True):
+            start, action = pushes(rng, batch, contact)
+            state = env.reset(jnp.asarray(start))
+            act = jnp.asarray(action)
+            jax.block_until_ready(step(state, act))  # compile outside the timing
+            t_mjx, (nxt, delta) = timed(lambda: jax.block_until_ready(step(state, act)), args.repeats)
+            rates = {}
+            for nthread in (1, 2):
+                datas = [mujoco.MjData(env.mj_model) for _ in range(nthread)]
+                t_nat, final = timed(lambda: native_push(env, start, np.zeros_like(start), action,
+                                                         nthread, datas), args.repeats)
+                rates[nthread] = batch * steps / t_nat
+            mjx_rate = batch * steps / t_mjx
+            diff = np.abs(np.asarray(delta) - final).max()
+            moved = np.mean(np.linalg.norm(final, axis=1) >= 0.01)
+            print(f"{batch:>7} {'contact' if contact else 'collect':>8} | {batch / t_mjx:>12,.0f} "
+                  f"{mjx_rate:>9,.0f} | {rates[1]:>12,.0f} {rates[2]:>12,.0f} | "
+                  f"{mjx_rate / rates[2]:>8.2f} {mjx_rate / rates[1]:>8.2f} | {diff:>15.2e} {moved:>6.1%}")
+
+    cfg = CollectConfig()
+    chunk = math.ceil(cfg.n_starts / math.ceil(cfg.n_starts / cfg.chunk_size))
+    keys = _episode_keys(jax.random.key(0), 0, chunk)
+    t = time.perf_counter()
+    jax.jit(jax.vmap(make_episode_fn(env, cfg))).lower(keys).compile()
+    print(f"\ncollection function (chunk of {chunk} episodes): jit compile {time.perf_counter() - t:.1f} s")
+    t = time.perf_counter()
+    data = collect(jax.random.key(0), cfg, progress=False, env=env)
+    print(f"paper-scale collect(): {cfg.n_starts} x {cfg.moves_per_start} moves x {cfg.n_goals} goals "
+          f"-> {data.size:,} rows in {time.perf_counter() - t:.1f} s (incl. its compile)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,147 @@
+"""Physics expectations for the push scene, independent of how it is implemented."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from lazyq_jax.config import PushConfig
+from lazyq_jax.env import PushEnv, normalize_action, push_reward, sample_outside_disk
+from lazyq_jax.env.native import native_push
+
+AXES = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
+
+
+def angle_deg(v):
+    return np.degrees(np.arctan2(v[..., 1], v[..., 0]))
+
+
+def test_axis_push_toward_centre_moves_disk_along_axis(push):
+    start = -0.33 * AXES  # just outside touching distance 0.31, aimed at the centre
+    _, delta = push(start, AXES)
+    along = np.sum(delta * AXES, axis=1)
+    across = np.abs(delta[:, 0] * AXES[:, 1] - delta[:, 1] * AXES[:, 0])
+    assert np.all(along > 0.05), along  # most of the 0.1 move is passed on to the disk
+    assert np.all(along < 0.1 + 1e-3), along  # but the disk cannot outrun the finger by much
+    assert np.all(across < 1e-4), across
+    goals = np.arctan2(AXES[:, 1], AXES[:, 0])
+    assert np.all(np.asarray(push_reward(delta, goals)) == 1.0)
+    assert np.all(np.asarray(push_reward(delta, goals + np.pi)) == -1.0)
+
+
+def test_diagonal_push_deflects_toward_x(push):
+    # Damping along y is 4x that along x, so a head-on 45 degree push drifts toward x:
+    # the disk moves at about 12-13 degrees (documented in PushConfig).
+    d = np.array([[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0]]) / np.sqrt(2)
+    _, delta = push(-0.33 * d, d)
+    deflection = np.abs((angle_deg(delta) - angle_deg(d) + 180) % 360 - 180)
+    assert np.all(np.linalg.norm(delta, axis=1) > 0.05)
+    assert np.all((deflection > 25) & (deflection < 40)), deflection
+    # x dominates: the disk moved closer to the x axis than the push direction
+    assert np.all(np.abs(delta[:, 0]) > 3 * np.abs(delta[:, 1])), delta
+    cos = np.sum(delta * d, axis=1) / np.linalg.norm(delta, axis=1)
+    assert np.all(cos < 0.9)  # counted as a wrong direction for the pushed diagonal
+    goals = np.arctan2(d[:, 1], d[:, 0])
+    assert np.all(np.asarray(push_reward(delta, goals)) == -1.0)
+
+
+def test_isotropic_friction_does_not_deflect():
+    env = PushEnv(PushConfig(anisotropy=1.0))
+    d = np.array([1.0, 1.0]) / np.sqrt(2)
+    _, delta = jax.jit(env.step)(env.reset(-0.33 * d), jnp.asarray(d))
+    delta = np.asarray(delta)
+    assert np.linalg.norm(delta) > 0.05
+    assert abs(angle_deg(delta) - 45.0) < 0.5
+
+
+def test_move_away_from_disk_does_not_move_it(push):
+    rng = np.random.default_rng(0)
+    ang = rng.uniform(-np.pi, np.pi, 8)
+    start = 0.5 * np.stack([np.cos(ang), np.sin(ang)], 1)
+    away = start / np.linalg.norm(start, axis=1, keepdims=True)
+    tangent = np.stack([-away[:, 1], away[:, 0]], 1)
+    far = np.array([[0.9, -0.9]]).repeat(4, 0)
+    finger, delta = push(np.concatenate([start[:4], start[4:], far]),
+                         np.concatenate([away[:4], tangent[4:], rng.normal(size=(4, 2))]))
+    assert np.all(np.linalg.norm(delta, axis=1) < 1e-6)
+    goals = np.linspace(-np.pi, np.pi, 16, endpoint=False)
+    assert np.all(np.asarray(push_reward(delta[:, None, :], goals[None, :])) == 0.0)
+
+
+def test_finger_ends_action_length_from_start(push):
+    start = np.array([[0.9, 0.9], [-0.6, 0.5], [-0.35, 0.0], [0.0, -0.8]])
+    action = np.array([[3.0, 4.0], [1e-3, 0.0], [1.0, 0.0], [-0.02, 0.5]])  # any length
+    finger, _ = push(start, action)
+    np.testing.assert_allclose(np.linalg.norm(finger - start, axis=1), 0.1, atol=1e-6)
+    unit = action / np.linalg.norm(action, axis=1, keepdims=True)
+    np.testing.assert_allclose(finger - start, 0.1 * unit, atol=1e-6)
+
+
+def test_mjx_agrees_with_native_mujoco(env, push):
+    rng = np.random.default_rng(1)
+    ang = rng.uniform(-np.pi, np.pi, 16)
+    start = rng.uniform(0.32, 0.42, 16)[:, None] * np.stack([np.cos(ang), np.sin(ang)], 1)
+    turn = ang + np.pi + rng.uniform(-0.6, 0.6, 16)  # roughly toward the disk
+    action = np.stack([np.cos(turn), np.sin(turn)], 1)
+    disk = rng.uniform(-0.3, 0.3, (16, 2))
+    _, delta = push(start + disk, action, disk)
+    native = native_push(env, start + disk, disk, action)
+    assert np.mean(np.linalg.norm(delta, axis=1) > 0.01) > 0.5  # the check is not vacuous
+    np.testing.assert_allclose(disk + delta, native, atol=1e-4)
+
+
+def test_bad_actions_and_starts(env):
+    state = env.reset(jnp.array([0.8, 0.0]))
+    with pytest.raises(ValueError, match="finite"):
+        env.step(state, jnp.array([jnp.nan, 1.0]))
+    with pytest.raises(ValueError, match="inside or touching"):
+        env.reset(jnp.array([0.2, 0.0]))
+    with pytest.raises(ValueError, match="inside or touching"):
+        env.reset(jnp.array([0.31, 0.0]))  # exactly touching
+    with pytest.raises(ValueError, match="shape"):
+        env.reset(jnp.zeros(3))
+    # inside jit a non-finite action is a no-op, never NaN
+    np.testing.assert_array_equal(
+        np.asarray(normalize_action(jnp.array([[jnp.inf, 0.0], [0.0, 0.0], [0.0, 2.0]]), 0.1)),
+        np.array([[0.0, 0.0], [0.0, 0.0], [0.0, 0.1]], np.float32))
+    # and a finger placed inside the disk under jit is pushed out, not simulated inside
+    f = jax.jit(env.reset)(jnp.array([0.1, 0.0]), jnp.zeros(2)).finger_xy
+    assert np.linalg.norm(np.asarray(f)) > env.config.contact_distance
+
+
+def test_sample_outside_disk_is_uniform_on_allowed_region():
+    keys = jax.random.split(jax.random.key(0), 20000)
+    x = np.asarray(jax.jit(jax.vmap(lambda k: sample_outside_disk(k, jnp.zeros(2), 1.0, 0.31)))(keys))
+    assert np.all(np.linalg.norm(x, axis=1) > 0.31) and np.all(np.abs(x) <= 1.0)
+    # uniform: the ring 0.31 < r < 0.6 holds area pi (0.6^2 - 0.31^2) of 4 - pi 0.31^2
+    frac = np.mean(np.linalg.norm(x, axis=1) < 0.6)
+    expected = np.pi * (0.6**2 - 0.31**2) / (4 - np.pi * 0.31**2)
+    assert abs(frac - expected) < 0.02, (frac, expected)
+
+
+class TestReward:
+    def test_table(self):
+        g = np.array([0.0, 0.0, 0.0, 0.0, 0.0, np.pi / 2, np.pi])
+        delta = np.array([
+            [0.0, 0.0],        # not moved
+            [0.00999, 0.0],    # just below the move threshold
+            [0.01, 0.0],       # exactly at the threshold: moved, correct
+            [-0.05, 0.0],      # moved, opposite direction
+            [0.05, 0.05],      # moved, 45 degrees off: cos 0.707 -> wrong
+            [0.0, 0.2],        # moved along +y, goal +y
+            [-0.3, 0.0],       # moved along -x, goal pi
+        ])
+        np.testing.assert_array_equal(np.asarray(push_reward(delta, g)), [0, 0, 1, -1, -1, 1, 1])
+
+    def test_cos_boundary(self):
+        # Eq. (15) demands cos > 0.9: just above is correct, just below is wrong.
+        theta = np.arccos(0.9)
+        for eps, expected in [(-1e-3, 1.0), (1e-3, -1.0)]:
+            d = 0.05 * np.array([np.cos(theta + eps), np.sin(theta + eps)])
+            assert float(push_reward(d, 0.0)) == expected
+        # the goal is periodic: -pi and pi are the same direction
+        assert float(push_reward(np.array([-0.05, 0.0]), -np.pi)) == 1.0
+
+    def test_broadcast_and_dtype(self):
+        r = push_reward(np.zeros((3, 1, 2)), np.zeros(5))
+        assert r.shape == (3, 5) and r.dtype == jnp.float32
