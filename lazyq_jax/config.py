@@ -123,6 +123,135 @@ class CollectConfig:
                f"distance {self.push.contact_distance} so that starts outside the disk exist")
 
 
+@dataclasses.dataclass(frozen=True)
+class NeighbourConfig:
+    """Neighbourhoods B(s, g) of §V-A-2: ``|s - s0| < radius_s`` and wrapped
+    ``|g - g0| < radius_g``, both radii grown by ``growth`` until ``k`` points are inside."""
+
+    k: int = 20
+    radius_s: float = 0.06
+    radius_g: float = 0.1
+    growth: float = 2 ** (1 / 3)
+
+    def __post_init__(self) -> None:
+        _check(isinstance(self.k, int) and self.k >= 1,
+               f"NeighbourConfig.k must be an integer >= 1, got {self.k!r}")
+        _positive(self, "radius_s", "radius_g")
+        _check(self.growth > 1, f"NeighbourConfig.growth must be > 1, got {self.growth!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Fitted value iteration of §IV-E / §V-A-4.
+
+    ``cycles`` times: recompute the targets Y (Eq. 11, or Eq. 13 with ``double_dqn``)
+    from the parameters frozen at the start of the cycle (the DQN target network),
+    then ``epochs`` passes of Adam over the whole dataset on ``(V - Y)^2`` (Eq. 10).
+    ``clip=False`` uses the unclipped Eq. (7) targets (the paper's ablation).
+    ``resample_neighbours`` draws new k-subsets of each neighbourhood every cycle.
+    """
+
+    gamma: float = 0.9
+    cycles: int = 10
+    epochs: int = 10
+    batch_size: int = 4096
+    learning_rate: float = 1e-3
+    width: int = 64
+    depth: int = 9
+    double_dqn: bool = False
+    clip: bool = True
+    resample_neighbours: bool = False
+    target_batch_size: int = 65536
+
+    def __post_init__(self) -> None:
+        _check(0.0 <= self.gamma < 1.0, f"TrainConfig.gamma must lie in [0, 1), got {self.gamma!r}")
+        for name in ("cycles", "epochs", "batch_size", "width", "target_batch_size"):
+            value = getattr(self, name)
+            _check(isinstance(value, int) and value >= 1,
+                   f"TrainConfig.{name} must be an integer >= 1, got {value!r}")
+        _check(isinstance(self.depth, int) and self.depth >= 2,
+               f"TrainConfig.depth (number of Dense layers) must be an integer >= 2, got {self.depth!r}")
+        _positive(self, "learning_rate")
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Everything one run needs; saved as JSON beside its dataset and checkpoints."""
+
+    seed: int = 0
+    collect: CollectConfig = CollectConfig()
+    neighbours: NeighbourConfig = NeighbourConfig()
+    train: TrainConfig = TrainConfig()
+
+    def __post_init__(self) -> None:
+        _check(isinstance(self.seed, int) and self.seed >= 0,
+               f"Config.seed must be an integer >= 0, got {self.seed!r}")
+
+
+PRESETS = {
+    # The paper's scale: 5000 starts x 2 moves x 100 goals, 10 cycles x 10 epochs.
+    "paper": Config(),
+    # Tiny end-to-end run for tests and CI (well under 2 minutes on 2 cores).
+    "smoke": Config(
+        collect=CollectConfig(n_starts=400, n_goals=20, start_range=0.7, chunk_size=400),
+        train=TrainConfig(cycles=3, epochs=2, batch_size=256, width=32, target_batch_size=4096),
+    ),
+}
+
+
+def preset(name: str) -> Config:
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
+    return PRESETS[name]
+
+
+def override(config: Any, assignments: list[str]) -> Any:
+    """Apply ``"section.field=value"`` strings, e.g. ``"train.width=128"``, ``"seed=3"``.
+
+    Values are parsed as the field's type (int, float, bool, str); an unknown field
+    or an unparsable value raises :class:`ConfigError` saying what is allowed.
+    """
+    for assignment in assignments:
+        if "=" not in assignment:
+            raise ConfigError(f"override {assignment!r} must look like section.field=value")
+        dotted, raw = assignment.split("=", 1)
+        config = _set(config, dotted.strip().split("."), raw.strip(), dotted)
+    return config
+
+
+def _set(obj: Any, path: list[str], raw: str, dotted: str) -> Any:
+    fields = {f.name: f for f in dataclasses.fields(obj)}
+    name = path[0]
+    if name not in fields:
+        where = type(obj).__name__
+        raise ConfigError(f"unknown config field {dotted!r}: {where} has {sorted(fields)}")
+    current = getattr(obj, name)
+    if len(path) > 1:
+        if not dataclasses.is_dataclass(current):
+            raise ConfigError(f"{dotted!r}: {name} is a value, not a section")
+        return dataclasses.replace(obj, **{name: _set(current, path[1:], raw, dotted)})
+    if dataclasses.is_dataclass(current):
+        raise ConfigError(f"{dotted!r} is a section; set one of its fields, e.g. {dotted}.<field>=...")
+    return dataclasses.replace(obj, **{name: _parse(raw, type(current), dotted)})
+
+
+def _parse(raw: str, kind: type, dotted: str) -> Any:
+    try:
+        if kind is bool:
+            if raw.lower() in ("1", "true", "yes", "on"):
+                return True
+            if raw.lower() in ("0", "false", "no", "off"):
+                return False
+            raise ValueError(raw)
+        if kind is int:
+            return int(raw)
+        if kind is float:
+            return float(raw)
+        return kind(raw)
+    except ValueError:
+        raise ConfigError(f"{dotted}={raw!r}: expected a value of type {kind.__name__}") from None
+
+
 def to_dict(config: Any) -> dict:
     """A JSON-ready dict of a (nested) config dataclass."""
     return dataclasses.asdict(config)
