@@ -1,0 +1,132 @@
+"""The main job, as library functions of ``(config, run_dir)``: collect, search, fit.
+
+``run_dir`` holds ``config.json``, ``dataset.npz``, ``checkpoints/<cycle>/`` and
+``metrics.jsonl`` (one JSON line per cycle).  The CLI is a thin layer over these.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from lazyq_jax.checkpoint import load_checkpoint, save_checkpoint
+from lazyq_jax.config import Config, to_dict
+from lazyq_jax.data import DatasetError, collect, dataset_summary, load_dataset, save_dataset
+from lazyq_jax.neighbours import find_neighbours
+from lazyq_jax.train import make_train_for
+from lazyq_jax.types import Transitions
+
+
+def run_keys(config: Config) -> dict[str, jax.Array]:
+    """Independent raw PRNG keys of a run, all derived from ``config.seed``."""
+    k_collect, k_neighbours, k_train = jax.random.split(jax.random.PRNGKey(config.seed), 3)
+    return {"collect": k_collect, "neighbours": k_neighbours, "train": k_train}
+
+
+def _log(msg: str) -> None:
+    tqdm.write(msg)
+
+
+def prepare_dataset(config: Config, run_dir: Path, progress: bool = True) -> Transitions:
+    """``run_dir/dataset.npz`` if it was collected with this config and seed, else collect it."""
+    path = run_dir / "dataset.npz"
+    if path.exists():
+        try:
+            data, stored, seed = load_dataset(path)
+            if stored == config.collect and seed == config.seed:
+                _log(f"dataset: reusing {path} ({data.size:,} rows)")
+                return data
+            _log(f"dataset: {path} has another config or seed; collecting anew")
+        except DatasetError as e:
+            _log(f"dataset: ignoring unusable cache ({e}); collecting anew")
+    t = time.perf_counter()
+    data = collect(run_keys(config)["collect"], config.collect, progress=progress)
+    save_dataset(path, data, config.collect, seed=config.seed)
+    summary = dataset_summary(data, config.collect.n_goals)
+    (run_dir / "dataset_summary.json").write_text(json.dumps(summary, indent=1))
+    _log(f"dataset: {data.size:,} rows, {summary['moves_that_moved_disk']} of {summary['moves']} "
+         f"moves moved the disk ({time.perf_counter() - t:.1f} s) -> {path}")
+    return data
+
+
+def neighbours_for(config: Config, data: Transitions, cycle: int | None = None) -> jax.Array:
+    """``idx[N, k]``: each transition's neighbourhood (§V-A-2) with every row as a query.
+
+    ``cycle`` picks a fresh random k-subset per cycle (``train.resample_neighbours``).
+    """
+    key = run_keys(config)["neighbours"]
+    if cycle is not None:
+        key = jax.random.fold_in(key, cycle)
+    nc = config.neighbours
+    found = find_neighbours(key, data.s, data.g, data.s, data.g, k=nc.k, radius_s=nc.radius_s,
+                            radius_g=nc.radius_g, growth=nc.growth)
+    return found.idx
+
+
+def fit(config: Config, run_dir: str | Path, *, resume: bool = False, progress: bool = True):
+    """Collect (or reuse) the dataset, find neighbourhoods, train with a checkpoint per cycle.
+
+    ``resume=True`` continues from the newest checkpoint in ``run_dir`` and ends with
+    the same parameters as an uninterrupted run with the same config.
+    Returns ``(state, trainer, data)``.
+    """
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    ckpt_dir = run_dir / "checkpoints"
+    metrics_path = run_dir / "metrics.jsonl"
+    (run_dir / "config.json").write_text(json.dumps(to_dict(config), indent=1))
+    timings: dict[str, float] = {}
+
+    t = time.perf_counter()
+    data = prepare_dataset(config, run_dir, progress)
+    timings["dataset_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    idx = jax.block_until_ready(neighbours_for(config, data))
+    timings["neighbours_s"] = time.perf_counter() - t
+    _log(f"neighbours: {idx.shape[0]:,} queries x k={idx.shape[1]} ({timings['neighbours_s']:.1f} s)")
+
+    tc = config.train
+    bar = tqdm(total=tc.epochs, unit="epoch", disable=not progress, leave=False)
+    trainer = make_train_for(config, progress=(lambda e: bar.update(1)) if progress else None)
+    if resume and (ckpt_dir.exists()):
+        state, _ = load_checkpoint(ckpt_dir, expect=config)
+        _log(f"resume: from cycle {int(state.cycle)} of {tc.cycles}")
+        kept = [line for line in metrics_path.read_text().splitlines()
+                if json.loads(line)["cycle"] <= int(state.cycle)] if metrics_path.exists() else []
+        metrics_path.write_text("".join(line + "\n" for line in kept))
+    else:
+        state = trainer.init(run_keys(config)["train"])
+        metrics_path.write_text("")
+
+    run_cycle = jax.jit(trainer.run_cycle)
+    t_train = time.perf_counter()
+    while int(state.cycle) < tc.cycles:
+        cycle = int(state.cycle)
+        if tc.resample_neighbours and cycle > 0:
+            idx = neighbours_for(config, data, cycle)
+        bar.reset()
+        bar.set_description(f"cycle {cycle + 1}/{tc.cycles}")
+        t = time.perf_counter()
+        state, metrics = run_cycle(state, data, idx)
+        metrics = jax.device_get(metrics)
+        seconds = time.perf_counter() - t
+        save_checkpoint(ckpt_dir, state, config)
+        record = {"cycle": int(state.cycle), "seconds": round(seconds, 2),
+                  **{k: np.asarray(v).round(5).tolist() for k, v in metrics.items()}}
+        with metrics_path.open("a") as f:
+            f.write(json.dumps(record) + "\n")
+        _log(f"cycle {record['cycle']:>2}/{tc.cycles}: loss {record['loss']:.4f}  "
+             f"Y {record['target_mean']:+.3f}±{record['target_std']:.3f}  "
+             f"clip {record['clip_fraction']:.1%}  |β| {record['beta_norm_mean']:.2f}  "
+             f"V(probes) {np.round(record['probe_values'], 2).tolist()}  ({seconds:.1f} s)")
+    bar.close()
+    timings["train_s"] = time.perf_counter() - t_train
+    (run_dir / "timings.json").write_text(json.dumps({k: round(v, 2) for k, v in timings.items()}))
+    return state, trainer, data

@@ -1,0 +1,158 @@
+"""Fitted value iteration with lazy targets (§IV-E, Eq. 10-14), all inside jit/lax.scan.
+
+``make_train(config, action_length)`` returns a :class:`Trainer` of pure functions:
+
+* ``init(key) -> TrainState``
+* ``run_cycle(state, data, idx) -> (state, metrics)``: one cycle, jitted: targets from
+  the parameters frozen at the start of the cycle (the DQN target network, Eq. 11-12),
+  then ``epochs`` epochs of Adam on ``mean((V - Y)^2)`` (Eq. 10) in ``lax.scan``.
+  With ``double_dqn`` the targets are Eq. (13)-(14) and are refreshed every epoch:
+  the action comes from the fit to the *online* network's values, its value from
+  the frozen network's fit.
+* ``train(key, data, idx) -> (state, metrics)``: all cycles in one ``lax.scan``
+  (``jit``/``vmap`` it over keys for many seeds at once).
+
+The host-side driver with checkpoints, progress and resume is :func:`lazyq_jax.pipeline.fit`.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from lazyq_jax.config import Config, TrainConfig
+from lazyq_jax.networks import ValueNetwork
+from lazyq_jax.targets import dataset_targets
+from lazyq_jax.types import Transitions
+
+# Probe points (s, g) whose values are logged every cycle: finger behind the disk for
+# goals 0 and pi/2 (should become valuable), the same spots for the opposite goals, and
+# a finger far from the disk.
+PROBE_S = ((-0.35, 0.0), (0.0, -0.35), (-0.35, 0.0), (0.0, -0.35), (0.9, 0.9))
+PROBE_G = (0.0, jnp.pi / 2, jnp.pi, -jnp.pi / 2, 0.0)
+
+
+@struct.dataclass
+class TrainState:
+    """Everything a cycle changes; a pytree carried by ``lax.scan`` and checkpointed."""
+
+    params: Any
+    batch_stats: Any
+    opt_state: Any
+    key: jax.Array  # raw uint32[2] PRNG key (checkpoint friendly)
+    cycle: jax.Array  # int32: number of completed cycles
+
+
+class Trainer(NamedTuple):
+    config: TrainConfig
+    network: ValueNetwork
+    optimizer: optax.GradientTransformation
+    init: Callable
+    run_cycle: Callable
+    train: Callable
+    value_fn: Callable  # value_fn(state) -> V(s[B, 2], g[B]) in inference mode
+
+
+def make_train(config: TrainConfig, action_length: float, *, state_scale: float = 1.0,
+               progress: Callable[[int], None] | None = None) -> Trainer:
+    """Build the pure training functions for ``config`` (see module docstring).
+
+    ``action_length`` is ``c`` in ``max_{|a|<=c} beta.a = c|beta|`` (Eq. 7).
+    ``progress``, if given, is called on the host with the epoch number after every
+    epoch (through ``jax.debug.callback``) to drive a progress bar.
+    """
+    if not isinstance(config, TrainConfig):
+        raise TypeError(f"make_train needs a TrainConfig, got {type(config).__name__}")
+    network = ValueNetwork(width=config.width, depth=config.depth, state_scale=state_scale)
+    optimizer = optax.adam(config.learning_rate)
+
+    def init(key: jax.Array) -> TrainState:
+        key = jnp.asarray(key, jnp.uint32)
+        key, k_init = jax.random.split(key)
+        variables = network.init(k_init, jnp.zeros((1, 2)), jnp.zeros((1,)), train=False)
+        params = variables["params"]
+        return TrainState(params=params, batch_stats=variables["batch_stats"],
+                          opt_state=optimizer.init(params), key=key, cycle=jnp.int32(0))
+
+    def value_fn(state: TrainState) -> Callable:
+        variables = {"params": state.params, "batch_stats": state.batch_stats}
+        return lambda s, g: network.apply(variables, s, g, train=False)
+
+    def targets(frozen: TrainState, online: TrainState | None, data: Transitions, idx: jax.Array):
+        return dataset_targets(
+            value_fn(frozen), data, idx, gamma=config.gamma, action_length=action_length,
+            clip=config.clip, v_online=None if online is None else value_fn(online),
+            batch_size=config.target_batch_size)
+
+    def loss_fn(params, batch_stats, s, g, y):
+        v, updates = network.apply({"params": params, "batch_stats": batch_stats}, s, g,
+                                   train=True, mutable=["batch_stats"])
+        return jnp.mean((v - y) ** 2), updates["batch_stats"]
+
+    def epoch(state: TrainState, data: Transitions, y: jax.Array, key: jax.Array):
+        n = data.r.shape[0]
+        batch = min(config.batch_size, n)
+        n_batches = n // batch  # the shuffled remainder (< batch rows) waits for the next epoch
+        perm = jax.random.permutation(key, n)
+
+        def minibatch(carry, i):
+            params, batch_stats, opt_state = carry
+            rows = jax.lax.dynamic_slice_in_dim(perm, i * batch, batch)
+            (loss, batch_stats), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+                params, batch_stats, data.s[rows], data.g[rows], y[rows])
+            updates, opt_state = optimizer.update(grads, opt_state, params)
+            return (optax.apply_updates(params, updates), batch_stats, opt_state), loss
+
+        (params, batch_stats, opt_state), losses = jax.lax.scan(
+            minibatch, (state.params, state.batch_stats, state.opt_state), jnp.arange(n_batches))
+        state = state.replace(params=params, batch_stats=batch_stats, opt_state=opt_state)
+        return state, jnp.mean(losses)
+
+    def run_cycle(state: TrainState, data: Transitions, idx: jax.Array):
+        frozen = state
+        key, k_epochs = jax.random.split(state.key)
+        y, diag = targets(frozen, None, data, idx)
+
+        def one_epoch(state, xs):
+            e, k = xs
+            y_e = y
+            if config.double_dqn:
+                y_e, _ = targets(frozen, state, data, idx)
+            state, loss = epoch(state, data, y_e, k)
+            if progress is not None:
+                jax.debug.callback(progress, e, ordered=True)
+            return state, loss
+
+        epochs = jnp.arange(config.epochs)
+        state, losses = jax.lax.scan(one_epoch, state,
+                                     (epochs, jax.random.split(k_epochs, config.epochs)))
+        state = state.replace(key=key, cycle=state.cycle + 1)
+        probes = value_fn(state)(jnp.asarray(PROBE_S, jnp.float32), jnp.asarray(PROBE_G, jnp.float32))
+        metrics = {
+            "loss": losses[-1],
+            "loss_first_epoch": losses[0],
+            "target_mean": jnp.mean(y),
+            "target_std": jnp.std(y),
+            "clip_fraction": jnp.mean(diag["clip_active"].astype(jnp.float32)),
+            "beta_norm_mean": jnp.mean(diag["beta_norm"]),
+            "probe_values": probes,
+        }
+        return state, metrics
+
+    def train(key: jax.Array, data: Transitions, idx: jax.Array):
+        def cycle(state, _):
+            return run_cycle(state, data, idx)
+
+        return jax.lax.scan(cycle, init(key), None, length=config.cycles)
+
+    return Trainer(config, network, optimizer, init, run_cycle, train, value_fn)
+
+
+def make_train_for(config: Config, **kwargs) -> Trainer:
+    """:func:`make_train` for a whole run :class:`Config` of the push task."""
+    return make_train(config.train, config.collect.push.action_length,
+                      state_scale=config.collect.start_range, **kwargs)
