@@ -52,6 +52,7 @@ class Trainer(NamedTuple):
     network: ValueNetwork
     optimizer: optax.GradientTransformation
     init: Callable
+    epoch: Callable  # epoch(state, data, y, key) -> (state, mean loss): one shuffled pass
     run_cycle: Callable
     train: Callable
     value_fn: Callable  # value_fn(state) -> V(s[B, 2], g[B]) in inference mode
@@ -149,7 +150,7 @@ def make_train(config: TrainConfig, action_length: float, *, state_scale: float 
 
         return jax.lax.scan(cycle, init(key), None, length=config.cycles)
 
-    return Trainer(config, network, optimizer, init, run_cycle, train, value_fn)
+    return Trainer(config, network, optimizer, init, epoch, run_cycle, train, value_fn)
 
 
 def make_train_for(config: Config, **kwargs) -> Trainer:
