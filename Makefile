@@ -19,6 +19,9 @@ $(STAMP): pyproject.toml
 train: $(STAMP)
 	$(PY) -m lazyq_jax train --run-dir $(RUN) $(ARGS)
 
+eval: $(STAMP)
+	$(PY) -m lazyq_jax evaluate --run-dir $(RUN) $(ARGS)
+
 test: $(STAMP)
 	$(PY) -m pytest -q $(ARGS)
 

@@ -46,7 +46,39 @@ def cmd_train(args) -> None:
     run_dir = args.run_dir or Path("runs") / args.preset
     t = time.perf_counter()
     fit(config, run_dir, resume=args.resume, progress=not args.no_progress)
-    print(f"done in {time.perf_counter() - t:.1f} s: {run_dir}")
+    print(f"trained in {time.perf_counter() - t:.1f} s")
+    if not args.no_eval:
+        _evaluate(run_dir, [])
+    print(f"run directory: {run_dir}")
+
+
+def _evaluate(run_dir: Path, assignments: list[str], figures: bool = True) -> None:
+    from lazyq_jax.checkpoint import load_checkpoint
+    from lazyq_jax.evaluate import evaluate_run
+
+    bad = [a for a in assignments if not a.strip().startswith("eval.")]
+    if bad:
+        raise ConfigError(f"evaluate takes only eval.* overrides (the run's own config is used), "
+                          f"got {bad}")
+    _, config = load_checkpoint(run_dir / "checkpoints")
+    eval_config = override(config, assignments).eval
+    results = evaluate_run(run_dir, eval_config, figures=figures)
+    a, b = results["protocol_a"], results["protocol_b"]
+    print(f"protocol A (goal directions): axis correct {a['axis_correct_rate']:.1%}, all "
+          f"{a['overall_correct_rate']:.1%}; protocol B (long horizon): {b['successes']}/"
+          f"{b['rollouts']} ({results['seconds']:.0f} s) -> {run_dir / 'eval' / 'results.json'}")
+    if figures:
+        print(f"figures: {run_dir / 'figures'}")
+
+
+def cmd_evaluate(args) -> None:
+    from lazyq_jax.evaluate import EvalError
+    from lazyq_jax.checkpoint import CheckpointError
+
+    try:
+        _evaluate(args.run_dir, args.set or [], figures=not args.no_figures)
+    except (EvalError, CheckpointError) as e:
+        raise SystemExit(f"error: {e}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -58,7 +90,18 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("train", help="collect (or reuse), find neighbours, train, checkpoint")
     _add_common(p)
     p.add_argument("--resume", action="store_true", help="continue from the newest checkpoint")
+    p.add_argument("--no-eval", action="store_true", help="skip the evaluation after training")
     p.set_defaults(func=cmd_train)
+    for name in ("evaluate", "plot"):
+        p = sub.add_parser(name, help="reload a finished run; run both evaluation protocols; write "
+                           "eval/results.json and figures/" if name == "evaluate" else
+                           "redraw figures/ of a finished run (reruns the deterministic evaluation)")
+        p.add_argument("--run-dir", type=Path, required=True, help="a run directory made by train")
+        p.add_argument("--set", action="append", metavar="eval.FIELD=VALUE",
+                       help="override an evaluation setting, e.g. eval.seed=3 (repeatable)")
+        p.add_argument("--no-figures", action="store_true", help=argparse.SUPPRESS
+                       if name == "plot" else "only results.json")
+        p.set_defaults(func=cmd_evaluate)
     p = sub.add_parser("config", help="print the resolved config as JSON")
     _add_common(p)
     p.set_defaults(func=lambda a: print(json.dumps(to_dict(_config(a)), indent=1)))

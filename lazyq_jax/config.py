@@ -175,6 +175,51 @@ class TrainConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    """The paper's two evaluation protocols (§V-B).
+
+    Protocol A (Fig. 4): ``n_directions`` goal directions evenly spaced, starting at 0;
+    ``episodes_per_direction`` episodes each of at most ``max_steps`` steps; the disk at the
+    origin, the finger uniform in ``[-start_range, start_range]^2`` outside the disk on the
+    side opposite to the goal direction.  Outcome: correct if the push that moved the disk
+    has ``cos >= 0.9`` to the goal, wrong if it moved otherwise, not pushed after ``max_steps``.
+
+    Protocol B (Fig. 5): ``long_rollouts`` rollouts of at most ``long_max_steps`` steps; disk
+    and target uniform in ``[-long_range, long_range]^2``, the finger uniform outside the disk
+    in a box of half-width ``long_finger_box`` around it; a high-level controller picks the
+    axis goal best aligned with ``target - disk`` at every step; success when the disk is
+    within ``success_radius`` of the target; failure when it leaves the table.
+
+    ``seed`` seeds the evaluation only; ``max_level`` bounds the neighbourhood growth per
+    policy step (queries beyond it get no action, and are counted).
+    """
+
+    seed: int = 0
+    n_directions: int = 16
+    episodes_per_direction: int = 20
+    max_steps: int = 50
+    start_range: float = 1.0
+    long_rollouts: int = 100
+    long_max_steps: int = 300
+    long_range: float = 0.6
+    long_finger_box: float = 0.6
+    success_radius: float = 0.05
+    max_level: int = 5
+
+    def __post_init__(self) -> None:
+        for name in ("n_directions", "episodes_per_direction", "max_steps", "long_rollouts",
+                     "long_max_steps"):
+            value = getattr(self, name)
+            _check(isinstance(value, int) and value >= 1,
+                   f"EvalConfig.{name} must be an integer >= 1, got {value!r}")
+        _check(isinstance(self.seed, int) and self.seed >= 0,
+               f"EvalConfig.seed must be an integer >= 0, got {self.seed!r}")
+        _check(isinstance(self.max_level, int) and self.max_level >= 0,
+               f"EvalConfig.max_level must be an integer >= 0, got {self.max_level!r}")
+        _positive(self, "start_range", "long_range", "long_finger_box", "success_radius")
+
+
+@dataclasses.dataclass(frozen=True)
 class Config:
     """Everything one run needs; saved as JSON beside its dataset and checkpoints."""
 
@@ -182,6 +227,7 @@ class Config:
     collect: CollectConfig = CollectConfig()
     neighbours: NeighbourConfig = NeighbourConfig()
     train: TrainConfig = TrainConfig()
+    eval: EvalConfig = EvalConfig()
 
     def __post_init__(self) -> None:
         _check(isinstance(self.seed, int) and self.seed >= 0,
@@ -195,6 +241,8 @@ PRESETS = {
     "smoke": Config(
         collect=CollectConfig(n_starts=400, n_goals=20, start_range=0.7, chunk_size=400),
         train=TrainConfig(cycles=3, epochs=2, batch_size=256, width=32, target_batch_size=4096),
+        eval=EvalConfig(n_directions=4, episodes_per_direction=4, long_rollouts=4,
+                        long_max_steps=60),
     ),
 }
 

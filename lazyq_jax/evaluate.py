@@ -1,0 +1,189 @@
+"""The paper's evaluations (§V-B) of a trained run: goal directions (Fig. 4) and the
+long-horizon task with a high-level controller (Fig. 5).  Rollouts are batched over
+episodes and run inside ``lax.scan`` with done masks."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from lazyq_jax.checkpoint import load_checkpoint
+from lazyq_jax.config import Config, EvalConfig
+from lazyq_jax.data import load_dataset
+from lazyq_jax.env import PushEnv, PushState, disk_moved, sample_outside_disk
+from lazyq_jax.policy import LazyPolicy, lazy_policy, make_lazy_policy
+from lazyq_jax.train import make_train_for
+
+NOT_PUSHED, CORRECT, WRONG = 0, 1, 2
+AXIS_GOALS = jnp.array([0.0, jnp.pi / 2, jnp.pi, -jnp.pi / 2], jnp.float32)
+
+
+class Rollouts(NamedTuple):
+    finger: jax.Array  # [T + 1, B, 2]
+    disk: jax.Array  # [T + 1, B, 2]
+    outcome: jax.Array  # [B] int
+    steps: jax.Array  # [B] steps taken
+    lost: jax.Array  # [B] steps at which the policy found no neighbourhood
+
+
+def _directions(n: int) -> jax.Array:
+    return jnp.arange(n, dtype=jnp.float32) * (2 * jnp.pi / n)
+
+
+def protocol_a(env: PushEnv, policy: LazyPolicy, key: jax.Array, cfg: EvalConfig) -> Rollouts:
+    """Fig. 4: push the disk at the origin toward each of ``n_directions`` goals."""
+    goals = jnp.repeat(_directions(cfg.n_directions), cfg.episodes_per_direction)
+    k_start, k_run = jax.random.split(key)
+    contact = env.config.contact_distance
+
+    def start(k, g):
+        behind = lambda x: x @ jnp.stack([jnp.cos(g), jnp.sin(g)]) < 0
+        return sample_outside_disk(k, jnp.zeros(2), cfg.start_range, contact, behind)
+
+    finger = jax.vmap(start)(jax.random.split(k_start, goals.shape[0]), goals)
+    state = env.reset(finger, jnp.zeros_like(finger))
+    cos_min = env.config.cos_threshold
+
+    def outcome_of(delta, g, state, new_state, moved):
+        # §V-B counts a push as correct when cos >= 0.9 (Eq. 15's reward demands > 0.9).
+        cos = (jnp.sum(delta * jnp.stack([jnp.cos(g), jnp.sin(g)], -1), -1)
+               / jnp.maximum(jnp.linalg.norm(delta, axis=-1), 1e-12))
+        return jnp.where(cos >= cos_min, CORRECT, WRONG), moved
+
+    return _rollout(env, policy, k_run, state, lambda st: goals, cfg.max_steps, outcome_of)
+
+
+def protocol_b(env: PushEnv, policy: LazyPolicy, key: jax.Array, cfg: EvalConfig,
+               table_half_size: float) -> tuple[Rollouts, jax.Array]:
+    """Fig. 5: reach random targets with axis goals chosen by a high-level controller.
+
+    Returns the rollouts (outcome CORRECT = success, WRONG = off the table,
+    NOT_PUSHED = out of time) and the targets ``[B, 2]``.
+    """
+    b = cfg.long_rollouts
+    k_disk, k_target, k_finger, k_run = jax.random.split(key, 4)
+    lim = cfg.long_range
+    disk = jax.random.uniform(k_disk, (b, 2), jnp.float32, -lim, lim)
+    target = jax.random.uniform(k_target, (b, 2), jnp.float32, -lim, lim)
+    contact = env.config.contact_distance
+    finger = jax.vmap(lambda k, d: sample_outside_disk(k, d, cfg.long_finger_box, contact))(
+        jax.random.split(k_finger, b), disk)
+    state = env.reset(finger, disk)
+
+    def controller(st: PushState) -> jax.Array:
+        direction = target - st.disk_xy
+        axes = jnp.stack([jnp.cos(AXIS_GOALS), jnp.sin(AXIS_GOALS)], -1)  # [4, 2]
+        return AXIS_GOALS[jnp.argmax(direction @ axes.T, axis=-1)]
+
+    def outcome_of(delta, g, state, new_state, moved):
+        reached = jnp.linalg.norm(target - new_state.disk_xy, axis=-1) < cfg.success_radius
+        off = jnp.any(jnp.abs(new_state.disk_xy) > table_half_size, axis=-1)
+        return jnp.where(reached, CORRECT, WRONG), reached | off
+
+    return _rollout(env, policy, k_run, state, controller, cfg.long_max_steps, outcome_of), target
+
+
+def _rollout(env, policy, key, state, goal_of, steps, outcome_of) -> Rollouts:
+    """Batched episodes in one ``lax.scan``; finished episodes stay frozen."""
+    batch = state.finger_xy.shape[0]
+    step = jax.vmap(env.step)
+
+    def body(carry, k):
+        state, done, outcome, n_steps, lost = carry
+        g = goal_of(state)
+        action, _, found = lazy_policy(policy, k, state.relative, g)
+        new_state, delta = step(state, action)
+        new_outcome, ends = outcome_of(delta, g, state, new_state, disk_moved(delta))
+        live = ~done
+        state = jax.tree.map(lambda new, old: jnp.where(live[:, None], new, old), new_state, state)
+        outcome = jnp.where(live & ends, new_outcome, outcome)
+        carry = (state, done | ends, outcome, n_steps + live, lost + (live & ~found))
+        return carry, (state.finger_xy, state.disk_xy)
+
+    zeros = jnp.zeros(batch, jnp.int32)
+    init = (state, jnp.zeros(batch, bool), zeros + NOT_PUSHED, zeros, zeros)
+    (_, _, outcome, n_steps, lost), (fingers, disks) = jax.lax.scan(
+        body, init, jax.random.split(key, steps))
+    fingers = jnp.concatenate([state.finger_xy[None], fingers])
+    disks = jnp.concatenate([state.disk_xy[None], disks])
+    return Rollouts(fingers, disks, outcome, n_steps, lost)
+
+
+def summarize_a(rollouts: Rollouts, cfg: EvalConfig) -> dict:
+    outcome = np.asarray(rollouts.outcome).reshape(cfg.n_directions, cfg.episodes_per_direction)
+    goals = np.asarray(_directions(cfg.n_directions))
+    per_goal = [{"goal": float(g), "correct": int(np.sum(o == CORRECT)),
+                 "wrong": int(np.sum(o == WRONG)), "not_pushed": int(np.sum(o == NOT_PUSHED))}
+                for g, o in zip(goals, outcome)]
+    axis = np.isclose(np.mod(goals, np.pi / 2), 0, atol=1e-5) | np.isclose(
+        np.mod(goals, np.pi / 2), np.pi / 2, atol=1e-5)
+    rate = lambda rows: float(np.mean(rows == CORRECT)) if rows.size else float("nan")
+    return {"per_goal": per_goal, "axis_correct_rate": rate(outcome[axis]),
+            "overall_correct_rate": rate(outcome), "policy_steps_without_neighbours":
+            int(np.sum(np.asarray(rollouts.lost)))}
+
+
+def summarize_b(rollouts: Rollouts) -> dict:
+    outcome = np.asarray(rollouts.outcome)
+    return {"successes": int(np.sum(outcome == CORRECT)), "rollouts": int(outcome.size),
+            "off_table": int(np.sum(outcome == WRONG)), "out_of_time": int(np.sum(outcome == NOT_PUSHED)),
+            "policy_steps_without_neighbours": int(np.sum(np.asarray(rollouts.lost)))}
+
+
+class EvalError(ValueError):
+    """The run directory cannot be evaluated (no checkpoint, no dataset, mismatch)."""
+
+
+def load_run(run_dir: Path):
+    """``(config, state, trainer, data)`` of a finished run; nothing is retrained."""
+    from lazyq_jax.checkpoint import CheckpointError
+
+    run_dir = Path(run_dir)
+    try:
+        state, config = load_checkpoint(run_dir / "checkpoints")
+    except CheckpointError as e:
+        raise EvalError(f"{run_dir}: cannot evaluate: {e}") from e
+    data, collect_cfg, seed = load_dataset(run_dir / "dataset.npz")
+    if collect_cfg != config.collect or seed != config.seed:
+        raise EvalError(f"{run_dir}/dataset.npz was not collected with the checkpoint's config and "
+                        "seed; re-run `python -m lazyq_jax train` for this run directory")
+    return config, state, make_train_for(config), data
+
+
+def evaluate_run(run_dir: str | Path, eval_config: EvalConfig | None = None, *,
+                 figures: bool = True) -> dict:
+    """Reload a run's checkpoint and dataset, run protocols A and B, write
+    ``run_dir/eval/results.json`` (and figures into ``run_dir/figures``)."""
+    run_dir = Path(run_dir)
+    config, state, trainer, data = load_run(run_dir)
+    cfg = eval_config or config.eval
+    t = time.perf_counter()
+    env = PushEnv(config.collect.push)
+    nc = config.neighbours
+    policy = make_lazy_policy(trainer.value_fn(state), data, gamma=config.train.gamma,
+                              action_length=config.collect.push.action_length, k=nc.k,
+                              radius_s=nc.radius_s, radius_g=nc.radius_g, growth=nc.growth,
+                              max_level=cfg.max_level)
+    k_a, k_b = jax.random.split(jax.random.PRNGKey(cfg.seed))
+    run_a = jax.jit(lambda p, k: protocol_a(env, p, k, cfg))
+    run_b = jax.jit(lambda p, k: protocol_b(env, p, k, cfg, config.collect.push.table_half_size))
+    rollouts_a = jax.device_get(run_a(policy, k_a))
+    rollouts_b, targets = jax.device_get(run_b(policy, k_b))
+    results = {"protocol_a": summarize_a(rollouts_a, cfg), "protocol_b": summarize_b(rollouts_b),
+               "seed": cfg.seed, "checkpoint": str(run_dir / "checkpoints" / str(int(state.cycle))),
+               "seconds": round(time.perf_counter() - t, 1)}
+    out = run_dir / "eval"
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps(results, indent=1))
+    if figures:
+        from lazyq_jax import plots
+
+        plots.write_all(run_dir / "figures", trainer.value_fn(state), results, rollouts_b, targets,
+                        config)
+    return results

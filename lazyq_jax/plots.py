@@ -1,0 +1,119 @@
+"""Figures 3-5 of the paper from a trained run (matplotlib, PNG)."""
+
+from __future__ import annotations
+
+from fractions import Fraction
+from pathlib import Path
+from typing import Callable
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+
+from lazyq_jax.config import Config  # noqa: E402
+
+COLORS = {"correct": "#2e7d32", "wrong": "#c62828", "not_pushed": "#9e9e9e"}
+
+
+def _pi_fraction(angle: float) -> str:
+    f = Fraction(angle / np.pi).limit_denominator(16)
+    num = "" if f.numerator == 1 else str(f.numerator)
+    return f"{num}π" if f.denominator == 1 else f"{num}π/{f.denominator}"
+
+
+def fig3_value(value_fn: Callable, config: Config, path: Path, goals=(np.pi / 2, 5 * np.pi / 4)):
+    """Fig. 3: V(s, g) over the finger position s for two goals, with the disk drawn."""
+    lim = config.collect.start_range
+    xs = np.linspace(-lim, lim, 161, dtype=np.float32)
+    grid = np.stack(np.meshgrid(xs, xs), -1).reshape(-1, 2)
+    fig, axes = plt.subplots(1, len(goals), figsize=(5.2 * len(goals), 4.6), constrained_layout=True)
+    inside = np.linalg.norm(grid, axis=1) <= config.collect.push.contact_distance
+    values = [np.where(inside, np.nan, np.asarray(value_fn(jnp.asarray(grid),
+                                                            jnp.full(len(grid), g, jnp.float32))))
+              for g in goals]  # the finger cannot be inside the disk: left blank
+    vmin, vmax = min(np.nanmin(v) for v in values), max(np.nanmax(v) for v in values)
+    for ax, g, v, letter in zip(np.atleast_1d(axes), goals, values, "abcd"):
+        im = ax.pcolormesh(xs, xs, v.reshape(len(xs), len(xs)), cmap="viridis", vmin=vmin,
+                           vmax=vmax, shading="auto")
+        ax.add_patch(plt.Circle((0, 0), config.collect.push.disk_radius, fill=False, color="w", lw=1.5))
+        ax.arrow(0, 0, 0.35 * np.cos(g), 0.35 * np.sin(g), color="w", width=0.012, head_width=0.06)
+        ax.set_title(f"({letter}) V(s, g = {_pi_fraction(g)})")
+        ax.set_xlabel("finger x (relative to disk)")
+        ax.set_ylabel("finger y")
+        ax.set_aspect("equal")
+    fig.colorbar(im, ax=axes, shrink=0.85, label="V")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def fig4_outcomes(results: dict, path: Path):
+    """Fig. 4: one outcome histogram per goal direction, placed around a circle at its angle."""
+    per_goal = results["protocol_a"]["per_goal"]
+    fig = plt.figure(figsize=(9, 9))
+    keys = ("correct", "wrong", "not_pushed")
+    for row in per_goal:
+        g = row["goal"]
+        cx, cy = 0.5 + 0.37 * np.cos(g), 0.5 + 0.37 * np.sin(g)
+        ax = fig.add_axes((cx - 0.065, cy - 0.05, 0.13, 0.1))
+        total = max(sum(row[k] for k in keys), 1)
+        ax.bar(range(3), [row[k] / total for k in keys], color=[COLORS[k] for k in keys])
+        ax.set_ylim(0, 1)
+        ax.set_xticks([])
+        ax.set_yticks([0, 1])
+        ax.tick_params(labelsize=7)
+        ax.set_title(f"{np.degrees(g):.1f}°", fontsize=8, pad=2)
+    center = fig.add_axes((0.3, 0.3, 0.4, 0.4))
+    center.add_patch(plt.Circle((0, 0), 0.25, color="0.8"))
+    for row in per_goal:
+        g = row["goal"]
+        center.annotate("", xy=(0.45 * np.cos(g), 0.45 * np.sin(g)), xytext=(0.27 * np.cos(g),
+                        0.27 * np.sin(g)), arrowprops={"arrowstyle": "->", "color": "0.4"})
+    a = results["protocol_a"]
+    center.text(0, -0.62, f"correct: axis {a['axis_correct_rate']:.0%}, all {a['overall_correct_rate']:.0%}",
+                ha="center", fontsize=10)
+    center.set_xlim(-0.7, 0.7)
+    center.set_ylim(-0.7, 0.7)
+    center.set_aspect("equal")
+    center.axis("off")
+    handles = [plt.Rectangle((0, 0), 1, 1, color=COLORS[k]) for k in keys]
+    fig.legend(handles, ["correct", "wrong direction", "not pushed"], loc="lower center", ncol=3)
+    fig.suptitle("Outcome frequencies per goal direction (protocol A)")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def fig5_trajectories(rollouts, targets, results: dict, config: Config, path: Path, n: int = 10):
+    """Fig. 5: disk trajectories of the first ``n`` long-horizon rollouts."""
+    half = config.collect.push.table_half_size
+    disk = np.asarray(rollouts.disk)  # [T + 1, B, 2]
+    steps = np.asarray(rollouts.steps)
+    success = np.asarray(rollouts.outcome) == 1
+    fig, ax = plt.subplots(figsize=(6.5, 6.5), constrained_layout=True)
+    ax.add_patch(plt.Rectangle((-half, -half), 2 * half, 2 * half, color="0.88"))
+    for i in range(min(n, disk.shape[1])):
+        path_i = disk[: steps[i] + 1, i]
+        color = COLORS["correct"] if success[i] else COLORS["wrong"]
+        ax.plot(path_i[:, 0], path_i[:, 1], color=color, lw=1.6)
+        ax.plot(*path_i[0], marker="D", color=color, ms=6)
+        ax.add_patch(plt.Circle(np.asarray(targets)[i], config.eval.success_radius, fill=False,
+                                color=color, lw=1.5))
+    b = results["protocol_b"]
+    ax.set_title(f"Long-horizon pushes: {b['successes']}/{b['rollouts']} succeeded "
+                 f"(first {min(n, disk.shape[1])} shown)")
+    ax.set_xlim(-half - 0.05, half + 0.05)
+    ax.set_ylim(-half - 0.05, half + 0.05)
+    ax.set_aspect("equal")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_all(out_dir: Path, value_fn, results, rollouts_b, targets, config: Config) -> list[Path]:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = [out_dir / "fig3_value.png", out_dir / "fig4_outcomes.png", out_dir / "fig5_long_horizon.png"]
+    fig3_value(value_fn, config, paths[0])
+    fig4_outcomes(results, paths[1])
+    fig5_trajectories(rollouts_b, targets, results, config, paths[2])
+    return paths
