@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from lazyq_jax.config import PushConfig
+from lazyq_jax.config import CollectConfig, Config, EvalConfig, PushConfig, TrainConfig
 from lazyq_jax.env import PushEnv
 
 PUSH_BATCH = 16
@@ -36,3 +36,23 @@ def push(env):
         return np.asarray(nxt.finger_xy)[:n], np.asarray(delta)[:n]
 
     return run
+
+
+# A small but real push run: dense data near the disk so a few cycles propagate value.
+PUSH = Config(
+    seed=1,
+    collect=CollectConfig(n_starts=1200, n_goals=24, start_range=0.6, chunk_size=1200),
+    train=TrainConfig(cycles=4, epochs=3, batch_size=512, width=64, target_batch_size=16384),
+    eval=EvalConfig(n_directions=4, episodes_per_direction=6, max_steps=20, start_range=0.6,
+                    long_rollouts=4, long_max_steps=30),
+)
+
+
+@pytest.fixture(scope="session")
+def push_run(tmp_path_factory):
+    """``(run_dir, state, trainer, data)`` of :data:`PUSH`, trained once per session."""
+    from lazyq_jax.pipeline import fit
+
+    run_dir = tmp_path_factory.mktemp("push_run")
+    state, trainer, data = fit(PUSH, run_dir, progress=False)
+    return run_dir, state, trainer, data

@@ -11,31 +11,20 @@ import numpy as np
 import pytest
 
 from lazyq_jax.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from lazyq_jax.config import CollectConfig, Config, TrainConfig, override
+from lazyq_jax.config import TrainConfig, override
 from lazyq_jax.neighbours import find_neighbours
 from lazyq_jax.pipeline import fit, neighbours_for, prepare_dataset
 from lazyq_jax.train import make_train, make_train_for
 from lazyq_jax.types import Transitions
 
-# Dense data near the disk so that a few cycles already propagate value.
-PUSH = Config(
-    seed=1,
-    collect=CollectConfig(n_starts=1200, n_goals=24, start_range=0.6, chunk_size=1200),
-    train=TrainConfig(cycles=4, epochs=3, batch_size=512, width=64, target_batch_size=16384),
-)
+from conftest import PUSH
+
 TINY = override(PUSH, ["collect.n_starts=150", "collect.n_goals=8", "train.cycles=3",
                        "train.epochs=2", "train.width=16", "train.batch_size=128"])
 
 
 def tree_equal(a, b):
     return all(jax.tree.leaves(jax.tree.map(lambda x, y: bool(np.array_equal(x, y)), a, b)))
-
-
-@pytest.fixture(scope="module")
-def push_run(tmp_path_factory):
-    run_dir = tmp_path_factory.mktemp("push_run")
-    state, trainer, data = fit(PUSH, run_dir, progress=False)
-    return run_dir, state, trainer, data
 
 
 def test_loss_falls_and_value_is_high_behind_the_disk(push_run):
