@@ -9,6 +9,7 @@ import jax.numpy as jnp
 
 from lazyq_jax.local_model import fit_local_linear, greedy_action
 from lazyq_jax.neighbours import GridIndex, build_index, query_neighbours
+from lazyq_jax.targets import bootstrap_values, evaluate_in_batches
 from lazyq_jax.types import Transitions
 
 
@@ -23,13 +24,9 @@ class LazyPolicy(NamedTuple):
 
 def bootstrap_table(value_fn: Callable, data: Transitions, gamma: float,
                     batch_size: int = 65536) -> jax.Array:
-    """``y_j = r_j + gamma (1 - done_j) V(s'_j, g_j)`` for every row (Eq. 6's targets), in chunks."""
-    n = data.r.shape[0]
-    pad = (-n) % batch_size
-    s_next = jnp.pad(data.s_next, ((0, pad), (0, 0))).reshape(-1, batch_size, 2)
-    g = jnp.pad(data.g, (0, pad)).reshape(-1, batch_size)
-    v = jax.lax.map(lambda xs: value_fn(*xs), (s_next, g)).reshape(-1)[:n]
-    return data.r + gamma * (1.0 - data.done.astype(jnp.float32)) * v
+    """``y_j = r_j + gamma (1 - done_j) V(s'_j, g_j)`` for every row (Eq. 6's targets)."""
+    v_next = evaluate_in_batches(value_fn, data.s_next, data.g, batch_size)
+    return bootstrap_values(data.r, data.done, v_next, gamma)
 
 
 def make_lazy_policy(value_fn: Callable, data: Transitions, *, gamma: float, action_length: float,

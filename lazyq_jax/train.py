@@ -138,8 +138,8 @@ def make_train(config: TrainConfig, action_length: float, *, state_scale: float 
             "loss_first_epoch": losses[0],
             "target_mean": jnp.mean(y),
             "target_std": jnp.std(y),
-            "clip_fraction": jnp.mean(diag["clip_active"].astype(jnp.float32)),
-            "beta_norm_mean": jnp.mean(diag["beta_norm"]),
+            "clip_fraction": diag.clip_fraction,
+            "beta_norm_mean": jnp.mean(diag.beta_norm),
             "probe_values": probes,
         }
         return state, metrics

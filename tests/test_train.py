@@ -51,7 +51,7 @@ def test_targets_respect_the_clip(push_run):
     bound = jnp.max(values[idx], axis=1)
     assert np.all(np.asarray(y_clipped) <= np.asarray(bound) + 1e-5)
     assert np.all(np.asarray(y_clipped) <= np.asarray(y_free) + 1e-6)
-    assert 0 < float(jnp.mean(diag["clip_active"])) < 1
+    assert 0 < float(diag.clip_fraction) < 1
 
 
 def test_dqn_and_double_dqn_both_run_and_differ(push_run):
@@ -120,14 +120,14 @@ def test_train_is_task_agnostic():
                        r=jnp.asarray(done, jnp.float32), g=jnp.asarray(g), done=jnp.asarray(done))
     idx = find_neighbours(jax.random.PRNGKey(0), data.s, data.g, data.s, data.g, k=10,
                           radius_s=0.15, radius_g=0.3).idx
-    trainer = make_train(TrainConfig(cycles=3, epochs=2, width=16, batch_size=256), 0.1)
+    trainer = make_train(TrainConfig(cycles=3, epochs=8, width=32, batch_size=128), 0.1)
     state, metrics = jax.jit(trainer.train)(jax.random.PRNGKey(0), data, idx)
     assert int(state.cycle) == 3
     assert np.all(np.isfinite(np.asarray(metrics["loss"])))
     v = trainer.value_fn(state)
     near = v(jnp.asarray(target[:200] * 0.85, jnp.float32), data.g[:200])
     away = v(jnp.asarray(-target[:200], jnp.float32), data.g[:200])
-    assert float(jnp.mean(near)) > float(jnp.mean(away))
+    assert float(jnp.mean(near)) > float(jnp.mean(away)) + 0.1, (jnp.mean(near), jnp.mean(away))
 
 
 def test_smoke_preset_through_the_cli(tmp_path):

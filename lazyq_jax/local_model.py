@@ -1,0 +1,122 @@
+"""Local action value models fitted per neighbourhood (paper Eq. 4-6, 9).
+
+``Q(s, a, g) ~ alpha + beta^T a`` is fitted by least squares to the ``k``
+neighbours' ``(a_j, y_j)`` (Eq. 5-6), for a whole batch of neighbourhoods at
+once, in closed form:
+
+* centre each neighbourhood: ``A = a - mean(a)``, ``y - mean(y)`` (uncentred
+  float32 normal equations lose all accuracy on nearly collinear actions);
+* solve ``(A^T A + lam I) beta = A^T y`` (explicit 2x2 inverse for ``n_a = 2``,
+  batched ``solve`` otherwise); ``alpha = mean(y) - beta . mean(a)``.
+
+``lam = RIDGE * trace(A^T A) / n_a`` (``RIDGE = 1e-5``) is a ridge *relative* to the action
+spread (so invariant to the units of ``a``). It changes well-conditioned fits by
+~1e-5 relative; on rank-deficient neighbourhoods (collinear actions, fewer than
+``n_a + 1`` distinct actions) it gives a solution within ~1% of the minimum-norm
+least squares one (float32 rounding of the nearly singular 2x2 system is what
+limits it: a smaller ridge would be noisier there), and ``beta = 0,
+alpha = mean(y)`` when all actions are equal. Never NaN or inf (for finite input).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+RIDGE = 1e-5
+TINY = 1e-30
+
+
+def _centred(actions, weights):
+    """Weighted means and centred actions; weights ``None`` means all ones."""
+    if weights is None:
+        w = jnp.ones(actions.shape[:-1], actions.dtype)
+    else:
+        w = jnp.asarray(weights, actions.dtype)
+    sw = jnp.maximum(w.sum(-1), TINY)
+    a_mean = jnp.einsum("...k,...ka->...a", w, actions) / sw[..., None]
+    return w, sw, a_mean, actions - a_mean[..., None, :]
+
+
+def _regularised_inverse(cov):
+    """``(cov + lam I)^-1`` for a batch of PSD ``[n_a, n_a]`` matrices (lam: module docstring).
+
+    Computed as ``inv(cov/s + RIDGE I) / s`` with ``s = trace/n_a`` (``s = 1`` where the
+    trace is 0) so that the determinant is well scaled in float32 for any units.
+    """
+    n_a = cov.shape[-1]
+    scale = jnp.trace(cov, axis1=-2, axis2=-1) / n_a
+    scale = jnp.where(scale > 0, scale, 1.0)[..., None, None]
+    reg = cov / scale + RIDGE * jnp.eye(n_a, dtype=cov.dtype)
+    if n_a == 1:
+        return 1.0 / (reg * scale)
+    if n_a == 2:
+        a, b, d = reg[..., 0, 0], reg[..., 0, 1], reg[..., 1, 1]
+        det = a * d - b * b
+        inv = jnp.stack([jnp.stack([d, -b], -1), jnp.stack([-b, a], -1)], -2)
+        return inv / (det[..., None, None] * scale)
+    return jnp.linalg.inv(reg) / scale
+
+
+def fit_local_linear(actions, values, weights=None):
+    """Least squares ``values ~ alpha + beta . a`` per neighbourhood (Eq. 5-6).
+
+    Args:
+      actions: ``[..., k, n_a]``; values: ``[..., k]``; weights: optional
+        ``[..., k]`` non-negative (e.g. a 0/1 mask), weighted least squares.
+    Returns:
+      ``(alpha [...], beta [..., n_a])``.
+    """
+    actions = jnp.asarray(actions, jnp.float32)
+    values = jnp.asarray(values, jnp.float32)
+    if actions.ndim < 2 or values.shape != actions.shape[:-1]:
+        raise ValueError(f"need actions [..., k, n_a] and values [..., k]; got {actions.shape}, {values.shape}")
+    w, sw, a_mean, centred = _centred(actions, weights)
+    v_mean = (w * values).sum(-1) / sw
+    wa = centred * w[..., None]
+    cov = jnp.einsum("...ka,...kb->...ab", wa, centred)
+    rhs = jnp.einsum("...ka,...k->...a", wa, values - v_mean[..., None])
+    beta = jnp.einsum("...ab,...b->...a", _regularised_inverse(cov), rhs)
+    alpha = v_mean - jnp.einsum("...a,...a->...", beta, a_mean)
+    return alpha, beta
+
+
+def precompute_projection(actions, weights=None):
+    """Data-only part of :func:`fit_local_linear`: ``P [..., 1 + n_a, k]`` with
+    ``[alpha, beta] = P @ values`` (see :func:`apply_projection`).
+
+    Neighbourhoods (hence their actions) do not depend on the network, so ``P``
+    can be computed once per dataset.
+    """
+    actions = jnp.asarray(actions, jnp.float32)
+    w, sw, a_mean, centred = _centred(actions, weights)
+    wa = centred * w[..., None]
+    cov = jnp.einsum("...ka,...kb->...ab", wa, centred)
+    p_beta = jnp.einsum("...ab,...kb->...ak", _regularised_inverse(cov), wa)  # [..., n_a, k]
+    p_alpha = w / sw[..., None] - jnp.einsum("...a,...ak->...k", a_mean, p_beta)
+    return jnp.concatenate([p_alpha[..., None, :], p_beta], axis=-2)
+
+
+def apply_projection(projection, values):
+    """``(alpha, beta)`` from a :func:`precompute_projection` result and ``values [..., k]``."""
+    ab = jnp.einsum("...ck,...k->...c", projection, jnp.asarray(values, jnp.float32))
+    return ab[..., 0], ab[..., 1:]
+
+
+def safe_norm(x, axis=-1):
+    """``||x||`` with a finite gradient (zero) at ``x = 0``."""
+    sq = jnp.sum(x * x, axis=axis)
+    pos = sq > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
+
+
+def greedy_action(beta, action_length):
+    """Greedy action of the lazy model, Eq. (9): ``c * beta / ||beta||`` (``c`` = ``action_length``).
+
+    For ``beta = 0`` (every action equally good) this returns the zero vector,
+    with finite (zero) gradients.
+    """
+    beta = jnp.asarray(beta, jnp.float32)
+    sq = jnp.sum(beta * beta, axis=-1, keepdims=True)
+    pos = sq > 0
+    return jnp.where(pos, action_length * beta * jax.lax.rsqrt(jnp.where(pos, sq, 1.0)), 0.0)

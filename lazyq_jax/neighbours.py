@@ -1,0 +1,489 @@
+"""Neighbourhoods ``B(s0, g0)`` of paper §V-A-2 on a grid hash, under ``jit``.
+
+Semantics (the reference the tests check against)
+-------------------------------------------------
+A data point ``(s, g)`` belongs to ``B_L(s0, g0)`` (``L`` growths) iff, computed
+in float32 exactly as written::
+
+    dx = s[0] - s0[0];  dy = s[1] - s0[1]
+    dx*dx + dy*dy < R2S[L]                 # R2S[L] = float32((radius_s * growth**L)**2)
+    d = |wrap(g) - wrap(g0)|;  min(d, TWO_PI - d) < RG[L]   # RG[L] = float32(radius_g * growth**L)
+
+with ``wrap(a) = a - TWO_PI * floor((a + PI) / TWO_PI)`` (float32, ``PI`` and
+``TWO_PI`` the float32 constants). This is the paper's ``cos(g - g0) > cos(0.1)``
+written as a wrapped distance, so ``-pi`` and ``pi`` are neighbours. The radius
+tables are rounded from float64 once; a float64 evaluation can disagree on
+pairs within an ulp of a boundary, the float32 formula above is the definition.
+``level`` is the smallest ``L >= 0`` with ``|B_L| >= k``; ``idx`` holds ``k``
+distinct indices drawn uniformly without replacement from ``B_level`` (the query
+point itself belongs to ``B`` when it is a data point).
+
+Data structure
+--------------
+Cells have sizes ``radius_s/4`` in x, ``radius_s/2`` in y and about ``radius_g/2``
+in g (periodic). Every point is stored ``D = 5`` times, once in each *g-block*
+(``D`` consecutive g-cells) that contains its g-cell; inside a block, entries are
+sorted by cell id ``(y-cell, x-cell)``. A ball query at level 0 is then 5
+contiguous ranges (one per y-row; the x-extent of each range is clipped to the
+chord of the disk at that row), each located in O(1) through a dense table of
+cell offsets. The ranges are cut into *items* of ``W = 32`` consecutive entries;
+one test per item yields a 32-bit membership word, and per-query member counts
+are popcount sums. Growth re-runs the search on the (few) queries with fewer
+than ``k`` members with a larger stencil, evaluating several levels at once.
+
+Sampling draws ``k`` distinct ranks in ``[0, m)`` with Floyd's algorithm and maps
+each rank to its member through the prefix of popcounts and a select-in-word.
+
+Two entry points:
+
+* :func:`find_neighbours` (host-driven, exact for any number of queries and any
+  level): builds the index, searches, grows until every query has ``k`` members.
+  Sizes that depend on the data (number of items, queries still growing) are
+  read back between passes, so it is not itself jittable.
+* :func:`build_index` once, then :func:`query_neighbours` (pure, jittable, e.g.
+  inside the ``lax.scan`` of a policy rollout): static shapes whose capacities
+  are bounded from the data at build time, levels ``0..index.max_level``. A query
+  that would need more growth is *reported* (``level == -1``, ``idx == -1``,
+  ``Neighbours.found`` false); :func:`check_found` raises on it outside ``jit``.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+PI = np.float32(np.pi)
+TWO_PI = np.float32(2 * np.pi)
+W = 32  # entries per item (bits per membership word)
+D = 5  # g-cells per g-block (each point is stored D times)
+_FX, _FY, _FG = 0.25, 0.5, 0.5  # cell size / base radius in x, y, g
+_CELL_SLACK = 1.001  # cells slightly above the target so the level-0 stencil stays 5 x 1
+
+
+@struct.dataclass
+class Neighbours:
+    """Result of a neighbour search for ``Q`` queries.
+
+    * ``idx``: int32 ``[Q, k]``: distinct indices into the data, uniform without
+      replacement from ``B_level`` (order is random).
+    * ``level``: int32 ``[Q]``: growths applied (radii ``radius * growth**level``).
+    * ``count``: int32 ``[Q]``: ``|B_level|``.
+
+    ``level == -1`` (and ``idx == -1``) only from :func:`query_neighbours` for a
+    query that needs more than ``index.max_level`` growths.
+    """
+
+    idx: jax.Array
+    level: jax.Array
+    count: jax.Array
+
+    @property
+    def found(self) -> jax.Array:
+        return self.level >= 0
+
+
+@struct.dataclass
+class GridIndex:
+    """Prebuilt grid hash over the data (see module docstring); build with :func:`build_index`."""
+
+    xs: jax.Array  # float32 [D*N] entries sorted by (g-block, y-cell, x-cell)
+    ys: jax.Array
+    gs: jax.Array  # wrapped goals
+    orig: jax.Array  # int32 [D*N] index of the entry in the original data
+    offsets: jax.Array  # int32 [n_g*n_y*n_x + 1] first entry of each cell
+    n_data: int = struct.field(pytree_node=False)
+    k: int = struct.field(pytree_node=False)
+    radius_s: float = struct.field(pytree_node=False)
+    radius_g: float = struct.field(pytree_node=False)
+    growth: float = struct.field(pytree_node=False)
+    x0: float = struct.field(pytree_node=False)
+    y0: float = struct.field(pytree_node=False)
+    h_x: float = struct.field(pytree_node=False)
+    h_y: float = struct.field(pytree_node=False)
+    n_x: int = struct.field(pytree_node=False)
+    n_y: int = struct.field(pytree_node=False)
+    n_g: int = struct.field(pytree_node=False)
+    margin: float = struct.field(pytree_node=False)  # float32 slack of the stencil
+    max_level: int = struct.field(pytree_node=False)  # levels query_neighbours covers
+    max_window: int = struct.field(pytree_node=False)  # entries in one range at max_level
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+def _check_params(k, radius_s, radius_g, growth):
+    if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k <= 0:
+        raise ValueError(f"k must be a positive int, got {k!r}")
+    for name, v in (("radius_s", radius_s), ("radius_g", radius_g)):
+        if not np.isfinite(v) or v <= 0:
+            raise ValueError(f"{name} must be a finite positive number, got {v!r}")
+    if not np.isfinite(growth) or growth <= 1:
+        raise ValueError(f"growth must be a finite number > 1 (radii grow each level), got {growth!r}")
+
+
+def _check_points(s, g, what):
+    s = np.asarray(s)
+    g = np.asarray(g)
+    if s.ndim != 2 or s.shape[1] != 2:
+        raise ValueError(f"{what}_s must have shape [n, 2], got {s.shape}")
+    if g.shape != (s.shape[0],):
+        raise ValueError(f"{what}_g must have shape [{s.shape[0]}] to match {what}_s, got {g.shape}")
+    s = s.astype(np.float32)
+    g = g.astype(np.float32)
+    if not (np.isfinite(s).all() and np.isfinite(g).all()):
+        raise ValueError(f"{what}_s / {what}_g contain NaN or inf; remove or fix those points")
+    return s, g
+
+
+def wrap_angle(g):
+    """``g - 2pi*floor((g + pi)/2pi)`` in float32 (NumPy or JAX arrays): the goal in ``[-pi, pi]``."""
+    xp = jnp if isinstance(g, jax.Array) else np
+    g = xp.asarray(g, dtype=xp.float32)
+    return g - TWO_PI * xp.floor((g + PI) / TWO_PI)
+
+
+def radius_tables(radius_s, radius_g, growth, levels):
+    """float32 ``(R2S, RG)`` for the given levels: the thresholds of the membership test."""
+    lv = np.asarray(levels, np.float64)
+    r2s = ((radius_s * growth**lv) ** 2).astype(np.float32)
+    rg = (radius_g * growth**lv).astype(np.float32)
+    return r2s, rg
+
+
+# ----------------------------------------------------------------------------- index
+
+
+def build_index(data_s, data_g, *, k=20, radius_s=0.06, radius_g=0.1, growth=2 ** (1 / 3),
+                max_level=8) -> GridIndex:
+    """Sort the data into the grid hash (host, NumPy; run once per dataset).
+
+    ``max_level`` only bounds :func:`query_neighbours` (static capacities are
+    chosen from the data for that many growths); :func:`find_neighbours` grows
+    without limit.
+    """
+    _check_params(k, radius_s, radius_g, growth)
+    if not isinstance(max_level, (int, np.integer)) or max_level < 0:
+        raise ValueError(f"max_level must be an int >= 0, got {max_level!r}")
+    s, g = _check_points(data_s, data_g, "data")
+    n = s.shape[0]
+    if n < k:
+        raise ValueError(f"need at least k={k} data points to draw k distinct neighbours, got {n}")
+    g = wrap_angle(g)
+    x, y = s[:, 0].astype(np.float64), s[:, 1].astype(np.float64)
+    x0, y0 = float(x.min()), float(y.min())
+    h_x, h_y = _FX * radius_s * _CELL_SLACK, _FY * radius_s * _CELL_SLACK
+    n_g = D * max(1, int(np.floor(2 * np.pi / (D * _FG * radius_g * _CELL_SLACK))))
+    # Coarsen x/y cells if the dense offset table would dwarf the data (sparse, wide data).
+    while (int((x.max() - x0) / h_x) + 1) * (int((y.max() - y0) / h_y) + 1) * n_g > max(4 * D * n, 1 << 20):
+        h_x, h_y = 2 * h_x, 2 * h_y
+    n_x = int((x.max() - x0) / h_x) + 1
+    n_y = int((y.max() - y0) / h_y) + 1
+    ix = np.clip(np.floor((x - x0) / h_x), 0, n_x - 1).astype(np.int64)
+    iy = np.clip(np.floor((y - y0) / h_y), 0, n_y - 1).astype(np.int64)
+    h_g = 2 * np.pi / n_g
+    ig = np.clip(np.floor((g.astype(np.float64) + np.pi) / h_g), 0, n_g - 1).astype(np.int64)
+    # Entry copies: a point with g-cell c lies in g-blocks c-D+1 .. c (block b = cells b..b+D-1).
+    # Sort by (y-cell, x-cell) once, then stably by block (a radix sort on small ints).
+    by_yx = np.argsort(iy * n_x + ix, kind="stable")
+    blocks = ((ig[by_yx, None] - np.arange(D)[None, :]) % n_g).ravel()
+    order = np.argsort(blocks.astype(np.int16 if n_g < 2**15 else np.int32), kind="stable")
+    src = by_yx[order // D]
+    cell = (blocks[order] * n_y + iy[src]) * n_x + ix[src]
+    n_cells = n_g * n_y * n_x
+    offsets = np.zeros(n_cells + 1, np.int64)
+    np.cumsum(np.bincount(cell, minlength=n_cells), out=offsets[1:])
+    # float32 slack for the stencil (>> rounding of coordinates, << the 0.1% cell slack).
+    margin = 2.0**-18 * (max(abs(x0), abs(y0), abs(x.max()), abs(y.max())) + 1.0)
+    max_window = _max_window(offsets, n_x, h_x, radius_s * growth**max_level * (1 + 1e-5) + margin)
+    return GridIndex(
+        xs=jnp.asarray(s[src, 0]), ys=jnp.asarray(s[src, 1]), gs=jnp.asarray(g[src]),
+        orig=jnp.asarray(src.astype(np.int32)), offsets=jnp.asarray(offsets.astype(np.int32)),
+        n_data=n, k=int(k), radius_s=float(radius_s), radius_g=float(radius_g), growth=float(growth),
+        x0=x0, y0=y0, h_x=h_x, h_y=h_y, n_x=n_x, n_y=n_y, n_g=n_g, margin=margin,
+        max_level=int(max_level), max_window=max(max_window, 1),
+    )
+
+
+def _max_window(offsets, n_x, h_x, r):
+    """Most entries in the x-cells one range of radius ``r`` can span, over all rows."""
+    w_cells = min(int(np.ceil(2 * r / h_x)) + 1, n_x)
+    start = np.arange(offsets.shape[0] - 1)
+    i = start % n_x
+    end = start - i + np.minimum(i + w_cells, n_x)
+    return max(int((offsets[end] - offsets[start]).max()), 1)
+
+
+# ----------------------------------------------------------------------------- jitted core
+
+
+def _stencil(index: GridIndex, level: int):
+    """Static stencil at ``level``: expanded radii, y-rows and g-blocks per query."""
+    r_s = index.radius_s * index.growth**level * (1 + 1e-5) + index.margin
+    r_g = index.radius_g * index.growth**level * (1 + 1e-5) + 1e-5
+    n_rows = min(int(np.ceil(2 * r_s / index.h_y)) + 1, index.n_y)
+    n_blocks = int(np.ceil((np.ceil(r_g * index.n_g / np.pi) + 1) / D))
+    full_g = n_blocks * D > index.n_g
+    return r_s, r_g, n_rows, (index.n_g // D if full_g else n_blocks), full_g
+
+
+def _plan(index: GridIndex, qx, qy, qg, level: int):
+    """Candidate ranges ``(start, length)`` ``[Q, R]`` of the level-``level`` stencil (exact cover)."""
+    r_s, r_g, n_rows, n_blocks, full_g = _stencil(index, level)
+    h_g = 2 * np.pi / index.n_g
+    f32 = jnp.float32
+    iy_lo = jnp.clip(jnp.floor((qy - f32(r_s) - f32(index.y0)) / f32(index.h_y)), 0, index.n_y - 1)
+    iy = iy_lo.astype(jnp.int32)[:, None] + jnp.arange(n_rows, dtype=jnp.int32)  # [Q, rows]
+    y_lo = f32(index.y0) + iy.astype(f32) * f32(index.h_y)
+    dmin = jnp.maximum(jnp.maximum(y_lo - qy[:, None], qy[:, None] - (y_lo + f32(index.h_y))), 0.0)
+    dmin = jnp.maximum(dmin - f32(index.margin), 0.0)
+    hw2 = f32(r_s) ** 2 - dmin * dmin
+    row_ok = (hw2 > 0) & (iy < index.n_y)
+    hw = jnp.sqrt(jnp.maximum(hw2, 0.0))
+    qxc = qx[:, None]
+    ix_lo = jnp.clip(jnp.floor((qxc - hw - f32(index.x0)) / f32(index.h_x)), 0, index.n_x - 1).astype(jnp.int32)
+    ix_hi = jnp.clip(jnp.floor((qxc + hw - f32(index.x0)) / f32(index.h_x)), 0, index.n_x - 1).astype(jnp.int32)
+    if full_g:
+        g_first = jnp.zeros_like(qg, dtype=jnp.int32)
+    else:
+        g_first = jnp.floor((qg - f32(r_g) + PI) / f32(h_g)).astype(jnp.int32)
+    blocks = jnp.mod(g_first[:, None] + D * jnp.arange(n_blocks, dtype=jnp.int32), index.n_g)  # [Q, B]
+    row = (blocks[:, :, None] * index.n_y + jnp.minimum(iy, index.n_y - 1)[:, None, :]) * index.n_x
+    start = index.offsets[row + ix_lo[:, None, :]]
+    end = index.offsets[row + ix_hi[:, None, :] + 1]
+    length = jnp.where(row_ok[:, None, :], end - start, 0)
+    q = qx.shape[0]
+    return start.reshape(q, -1), length.reshape(q, -1)
+
+
+def _items(start, length, n_items_total: int):
+    """Cut every range into items of ``W`` entries; items are grouped by query, in order."""
+    q, r = start.shape
+    nit = ((length + W - 1) // W).reshape(-1)
+    cum = jnp.cumsum(nit)
+    first = cum - nit  # first item of each (query, range) pair
+    # pair of item t = (number of pairs starting at or before t) - 1; empty pairs share
+    # their start with the next non-empty pair and are counted before it.
+    starts = jnp.zeros(n_items_total, jnp.int32).at[first].add(1, mode="drop")
+    pair = jnp.cumsum(starts) - 1
+    chunk = jnp.arange(n_items_total, dtype=jnp.int32) - first[pair]
+    item_start = start.reshape(-1)[pair] + W * chunk
+    item_valid = jnp.clip(length.reshape(-1)[pair] - W * chunk, 0, W)
+    per_query = nit.reshape(q, r)
+    return pair // r, item_start, item_valid, first.reshape(q, r)[:, 0], per_query.sum(1)
+
+
+def _member_words(index: GridIndex, qx, qy, qg, item_q, item_start, item_valid, levels):
+    """Membership words ``[T, len(levels)]`` (bit w: entry ``item_start + w`` is in ``B_level``)."""
+    r2s, rg = radius_tables(index.radius_s, index.radius_g, index.growth, levels)
+    lane = jnp.arange(W, dtype=jnp.int32)
+    pos = jnp.minimum(item_start[:, None] + lane, index.xs.shape[0] - 1)
+    dx = index.xs[pos] - qx[item_q][:, None]
+    dy = index.ys[pos] - qy[item_q][:, None]
+    d = jnp.abs(index.gs[pos] - qg[item_q][:, None])
+    d2 = dx * dx + dy * dy
+    dg = jnp.minimum(d, TWO_PI - d)
+    valid = lane < item_valid[:, None]
+    bits = jnp.left_shift(jnp.uint32(1), lane.astype(jnp.uint32))
+    words = [jnp.sum(jnp.where(valid & (d2 < a) & (dg < b), bits, jnp.uint32(0)), axis=1, dtype=jnp.uint32)
+             for a, b in zip(r2s, rg)]
+    return jnp.stack(words, axis=1)
+
+
+def _mix32(x):
+    """lowbias32 integer hash (uint32 -> uint32)."""
+    x = x ^ (x >> 16)
+    x = x * jnp.uint32(0x7FEB352D)
+    x = x ^ (x >> 15)
+    x = x * jnp.uint32(0x846CA68B)
+    return x ^ (x >> 16)
+
+
+def _floyd_ranks(key, m, k: int):
+    """``k`` distinct ranks in ``[0, m)`` per row, uniform over k-subsets (Floyd's algorithm).
+
+    Each draw ``t ~ U{0..j}`` is ``floor(u * (j + 1))`` with a 24-bit uniform ``u`` from a
+    hash of a per-query seed (one threefry draw per query); the bias is below
+    ``m / 2**24``.
+    """
+    seed = jax.random.bits(key, m.shape, jnp.uint32)
+
+    cols = []
+    for i in range(k):  # unrolled: draw i only compares with the i earlier draws
+        j = m - k + i
+        u = (_mix32(seed ^ jnp.uint32((i * 0x9E3779B9) & 0xFFFFFFFF)) >> 8).astype(jnp.float32)
+        t = jnp.minimum((u * jnp.float32(2.0**-24) * (j + 1).astype(jnp.float32)).astype(jnp.int32), j)
+        taken = jnp.zeros(m.shape, bool)
+        for c in cols:
+            taken = taken | (c == t)
+        cols.append(jnp.where(taken, j, t))
+    return jnp.stack(cols, axis=1)
+
+
+def _select_bit(word, r):
+    """Position of the ``r``-th (0-based) set bit of ``word``."""
+    pos = jnp.zeros_like(r)
+    for step in (16, 8, 4, 2, 1):
+        mid = pos + step
+        below = jax.lax.population_count(word & ((jnp.uint32(1) << mid.astype(jnp.uint32)) - 1))
+        pos = jnp.where(below.astype(jnp.int32) <= r, mid, pos)
+    return pos
+
+
+def _search(index: GridIndex, key, qx, qy, qg, *, lo: int, hi: int, n_items: int, steps: int):
+    """Levels ``lo..hi`` for every query (stencil of level ``hi``), then sampling at that level.
+
+    ``n_items`` must be at least the total number of items; ``steps`` at least the
+    bit length of the largest number of items of one query. Returns ``(idx, level, count)``
+    with ``level == -1`` (``idx == -1``, ``count`` at level ``hi``) where ``|B_hi| < k``.
+    """
+    k = index.k
+    start, length = _plan(index, qx, qy, qg, hi)
+    item_q, item_start, item_valid, first, n_q = _items(start, length, n_items)
+    words = _member_words(index, qx, qy, qg, item_q, item_start, item_valid, range(lo, hi + 1))
+    q = qx.shape[0]
+    counts = jax.ops.segment_sum(jax.lax.population_count(words).astype(jnp.int32), item_q,
+                                 num_segments=q, indices_are_sorted=True)  # [Q, levels]
+    enough = counts >= k
+    found = enough.any(axis=1)
+    li = jnp.argmax(enough, axis=1)
+    level = jnp.where(found, lo + li, -1)
+    m = jnp.where(found, jnp.take_along_axis(counts, li[:, None], 1)[:, 0], counts[:, -1])
+    # Words of each item at its query's level, their popcounts and global exclusive prefix.
+    word = jnp.take_along_axis(words, li[item_q][:, None], 1)[:, 0]
+    pc = jax.lax.population_count(word).astype(jnp.int32)
+    prefix = jnp.cumsum(pc) - pc
+    ranks = _floyd_ranks(key, jnp.where(found, m, k), k)  # [Q, k]
+    target = jnp.take(prefix, jnp.minimum(first, n_items - 1))[:, None] + ranks
+    # Last item t of the query with prefix[t] <= target (upper-bound search in its item window).
+    lo_t = jnp.broadcast_to(first[:, None], ranks.shape)
+    size = jnp.broadcast_to(n_q[:, None], ranks.shape)
+    for _ in range(steps):
+        half = size // 2
+        mid = jnp.minimum(lo_t + half, n_items - 1)
+        go = (half > 0) & (prefix[mid] <= target)
+        lo_t = jnp.where(go, mid, lo_t)
+        size = jnp.where(go, size - half, half)
+    t = jnp.minimum(lo_t, n_items - 1)
+    bit = _select_bit(word[t], target - prefix[t])
+    idx = index.orig[jnp.minimum(item_start[t] + bit, index.orig.shape[0] - 1)]
+    idx = jnp.where(found[:, None], idx, -1)
+    return idx, level.astype(jnp.int32), m.astype(jnp.int32)
+
+
+@partial(jax.jit, static_argnames=("lo", "hi", "n_items", "steps"), donate_argnums=(5,))
+def _pass(index: GridIndex, key, qs, qg, sub, out, *, lo, hi, n_items, steps):
+    """One :func:`_search` on the queries ``sub`` (indices), written into ``out = (idx, level, count)``."""
+    res = _search(index, key, qs[sub, 0], qs[sub, 1], qg[sub], lo=lo, hi=hi, n_items=n_items, steps=steps)
+    return tuple(o.at[sub].set(r) for o, r in zip(out, res))
+
+
+@partial(jax.jit, static_argnames=("level",))
+def _items_per_query(index: GridIndex, qx, qy, qg, level: int):
+    _, length = _plan(index, qx, qy, qg, level)
+    return ((length + W - 1) // W).sum(axis=1)
+
+
+def _bucket(n: int) -> int:
+    """Round ``n`` up to 16 significant levels per power of two (bounds recompiles, <7% waste)."""
+    n = max(int(n), 1)
+    unit = 1 << max(n.bit_length() - 4, 0)
+    return -(-n // unit) * unit
+
+
+def query_neighbours(index: GridIndex, key, query_s, query_g) -> Neighbours:
+    """Neighbours of a batch of queries from a prebuilt index: pure and jittable.
+
+    Static capacities come from the data (``index.max_window``), so nothing is
+    dropped: every query with ``|B_L| >= k`` for some ``L <= index.max_level`` gets
+    its exact level and an exact sample. A query needing more growth gets
+    ``level == -1`` and ``idx == -1`` (see :func:`check_found`;
+    :func:`find_neighbours` has no such limit). The work is that of the
+    ``max_level`` stencil for every query: meant for small batches (a policy
+    step). Batch the queries rather than ``vmap`` over this function.
+    """
+    if query_s.ndim != 2 or query_s.shape[1] != 2 or query_g.shape != query_s.shape[:1]:
+        raise ValueError(f"query_s must be [Q, 2] and query_g [Q]; got {query_s.shape} and {query_g.shape}")
+    q = query_s.shape[0]
+    qs = jnp.asarray(query_s, jnp.float32)
+    _, _, n_rows, n_blocks, _ = _stencil(index, index.max_level)
+    per_query = n_rows * n_blocks * (-(-index.max_window // W))
+    idx, level, count = _search(index, key, qs[:, 0], qs[:, 1], wrap_angle(jnp.asarray(query_g)),
+                                lo=0, hi=index.max_level, n_items=max(q * per_query, 1),
+                                steps=per_query.bit_length())
+    return Neighbours(idx=idx, level=level, count=count)
+
+
+def check_found(nb: Neighbours) -> Neighbours:
+    """Raise (outside ``jit``) if any query of :func:`query_neighbours` needed more growth."""
+    missing = int(np.sum(np.asarray(nb.level) < 0))
+    if missing:
+        raise ValueError(f"{missing} queries need more than max_level growths; rebuild the index with a "
+                         "larger max_level or use find_neighbours (no limit)")
+    return nb
+
+
+def search_all(index: GridIndex, key, query_s, query_g) -> Neighbours:
+    """Exact neighbours of any number of queries (host-driven passes; not jittable).
+
+    Pass 1 evaluates level 0 for all queries (sorted by cell for locality); the
+    queries still short of ``k`` members are compacted and searched again with
+    the stencils of levels ``1..3``, ``4..7``, ``8..15``, ... until the radius
+    covers all data, where ``|B| = N >= k``. Item counts are read back between
+    passes to size each pass exactly (rounded by :func:`_bucket`).
+    """
+    qs, qg = _check_points(query_s, query_g, "query")
+    qg = wrap_angle(qg)
+    n_q = qs.shape[0]
+    k = index.k
+    if n_q == 0:
+        z = jnp.zeros((0,), jnp.int32)
+        return Neighbours(idx=jnp.zeros((0, k), jnp.int32), level=z, count=z)
+    # Query order: by g-cell, then y, then x cell (the data layout) for locality.
+    cell = (np.floor((qg + np.pi) * (index.n_g / (2 * np.pi))).astype(np.int64) * index.n_y
+            + np.clip(np.floor((qs[:, 1] - index.y0) / index.h_y), 0, index.n_y - 1).astype(np.int64)
+            ) * index.n_x + np.clip(np.floor((qs[:, 0] - index.x0) / index.h_x), 0, index.n_x - 1).astype(np.int64)
+    order = np.argsort(cell, kind="stable").astype(np.int32)
+    # Level at which the radii cover everything: |B| = N there.
+    lo_x, lo_y = min(qs[:, 0].min(), index.x0), min(qs[:, 1].min(), index.y0)
+    hi_x = max(qs[:, 0].max(), float(index.xs.max()))
+    hi_y = max(qs[:, 1].max(), float(index.ys.max()))
+    diag = math.hypot(hi_x - lo_x, hi_y - lo_y)
+    g = index.growth
+    level_all = 1 + max(0, math.ceil(math.log(max(diag, 1e-30) / index.radius_s) / math.log(g)),
+                        math.ceil(math.log(np.pi / index.radius_g) / math.log(g)))
+    out = (jnp.zeros((n_q, k), jnp.int32), jnp.zeros((n_q,), jnp.int32), jnp.zeros((n_q,), jnp.int32))
+    pending, lo, hi, p = order, 0, 0, 0
+    qs_j, qg_j = jnp.asarray(qs), jnp.asarray(qg)
+    while pending.size:
+        # Later passes: pad the (few) pending queries to a bucketed size by repeating the last
+        # one (identical duplicates write identical results).
+        sub = pending if p == 0 else np.concatenate(
+            [pending, np.full(_bucket(pending.size) - pending.size, pending[-1], np.int32)])
+        sub_j = jnp.asarray(sub)
+        n_it = np.asarray(_items_per_query(index, qs_j[sub_j, 0], qs_j[sub_j, 1], qg_j[sub_j], level=hi))
+        out = _pass(index, jax.random.fold_in(key, p), qs_j, qg_j, sub_j, out, lo=lo, hi=hi,
+                    n_items=_bucket(n_it.sum()), steps=int(n_it.max()).bit_length())
+        pending = pending[np.asarray(out[1])[pending] < 0]
+        if pending.size and hi >= level_all:
+            raise AssertionError("internal error: radius covers all data but fewer than k members")
+        lo, hi, p = hi + 1, min(max(2 * hi + 1, 3), level_all), p + 1
+    idx, level, count = out
+    return Neighbours(idx=idx, level=level, count=count)
+
+
+def find_neighbours(key, data_s, data_g, query_s, query_g, *, k=20, radius_s=0.06, radius_g=0.1,
+                    growth=2 ** (1 / 3)) -> Neighbours:
+    """Neighbourhoods of paper §V-A-2 (see the module docstring for the exact semantics).
+
+    Builds the grid index (:func:`build_index`) and runs :func:`search_all`. Raises
+    ``ValueError`` before any compilation for bad shapes, NaN/inf coordinates,
+    ``k <= 0`` or ``k > N``, non-positive radii or ``growth <= 1``.
+    """
+    _check_points(query_s, query_g, "query")
+    index = build_index(data_s, data_g, k=k, radius_s=radius_s, radius_g=radius_g, growth=growth, max_level=0)
+    return search_all(index, key, query_s, query_g)

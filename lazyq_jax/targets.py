@@ -1,0 +1,108 @@
+"""Bellman targets of the lazy model (paper Eq. 7-8, 11-14).
+
+The action set is the ball of radius ``c`` (``action_length``), so
+``max_{|a|<=c} beta^T a = c ||beta||`` (Eq. 7), attained at ``c beta/||beta||`` (Eq. 9).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from lazyq_jax.local_model import apply_projection, fit_local_linear, greedy_action, safe_norm
+from lazyq_jax.types import Transitions
+
+ValueFn = Callable[[jax.Array, jax.Array], jax.Array]  # (s [B, 2], g [B]) -> V [B]
+
+
+def lazy_target(alpha, beta, values, action_length, clip=True):
+    """``V(s, g)`` of the lazy model: Eq. (7) ``alpha + c ||beta||`` (``clip=False``) or
+    Eq. (8) ``min(alpha + c ||beta||, max_j values_j)`` (``clip=True``).
+
+    Returns ``(target [...], clip_active [...] bool)``; ``clip_active`` marks where the
+    max-bound of Eq. (8) was the smaller term (always false when ``clip=False``).
+    """
+    linear = alpha + action_length * safe_norm(beta)
+    return _clip(linear, values, clip)
+
+
+def _clip(linear, values, clip):
+    if not clip:
+        return linear, jnp.zeros(linear.shape, bool)
+    bound = jnp.max(values, axis=-1)
+    return jnp.minimum(linear, bound), linear > bound
+
+
+def bootstrap_values(r, done, v_next, gamma):
+    """``y_j = r_j + gamma (1 - done_j) V(s'_j, g_j)`` (the bracket of Eq. 6); terminal
+    transitions are not bootstrapped."""
+    return r + gamma * jnp.where(done, 0.0, v_next)
+
+
+@struct.dataclass
+class TargetDiagnostics:
+    """Per-transition diagnostics of :func:`dataset_targets`."""
+
+    clip_active: jax.Array  # bool [N]: the max-bound of Eq. (8)/(11)/(13) was active
+    alpha: jax.Array  # [N] target-network alpha
+    beta_norm: jax.Array  # [N] target-network ||beta||
+
+    @property
+    def clip_fraction(self) -> jax.Array:
+        return jnp.mean(self.clip_active.astype(jnp.float32))
+
+
+def evaluate_in_batches(v: ValueFn, s, g, batch_size: int):
+    """``v(s, g)`` over ``N`` points in chunks of ``batch_size`` (``lax.map``) to bound memory."""
+    n = s.shape[0]
+    if batch_size <= 0:
+        raise ValueError(f"batch_size must be positive, got {batch_size}")
+    batch_size = min(batch_size, n)
+    n_b = -(-n // batch_size)
+    pad = n_b * batch_size - n
+    s_b = jnp.pad(s, ((0, pad), (0, 0))).reshape(n_b, batch_size, s.shape[1])
+    g_b = jnp.pad(g, (0, pad)).reshape(n_b, batch_size)
+    return jax.lax.map(lambda sg: v(*sg), (s_b, g_b)).reshape(-1)[:n]
+
+
+def dataset_targets(v_target: ValueFn, data: Transitions, neighbours_idx, *, gamma, action_length,
+                    clip=True, v_online: ValueFn | None = None, projection=None, batch_size=65536):
+    """Targets ``Y [N]`` for the whole dataset and their :class:`TargetDiagnostics`.
+
+    * DQN form (``v_online is None``), Eq. (11)-(12): ``alpha, beta`` fitted to
+      ``y = r + gamma (1-done) V_target(s', g)`` over each neighbourhood;
+      ``Y = min(alpha + c ||beta||, max_j y_j)`` (no ``min`` if ``clip=False``).
+    * Double-DQN form (``v_online`` given), Eq. (13)-(14): ``a_opt = c beta_o/||beta_o||``
+      from the fit to ``y`` computed with ``v_online``;
+      ``Y = min(alpha_t + beta_t . a_opt, max_j y_t_j)``.
+
+    ``neighbours_idx``: int ``[N, k]`` (``find_neighbours(...).idx`` with the data as
+    queries). ``projection``: optional ``precompute_projection(data.a[neighbours_idx])``
+    (data-only, reusable every cycle); otherwise the fit is recomputed. ``v_*`` are
+    callables ``(s [B, 2], g [B]) -> V [B]``, e.g. ``functools.partial(net.apply, params)``,
+    evaluated in chunks of ``batch_size``. Traceable: wrap the caller in ``jax.jit``.
+    """
+    idx = jnp.asarray(neighbours_idx)
+    if idx.ndim != 2 or idx.shape[0] != data.r.shape[0]:
+        raise ValueError(f"neighbours_idx must be [N={data.r.shape[0]}, k], got {idx.shape}")
+
+    def fit(v):
+        y = bootstrap_values(data.r, data.done, evaluate_in_batches(v, data.s_next, data.g, batch_size), gamma)
+        y_nb = y[idx]
+        if projection is None:
+            alpha, beta = fit_local_linear(data.a[idx], y_nb)
+        else:
+            alpha, beta = apply_projection(projection, y_nb)
+        return alpha, beta, y_nb
+
+    alpha, beta, y_nb = fit(v_target)
+    if v_online is None:
+        linear = alpha + action_length * safe_norm(beta)
+    else:
+        _, beta_o, _ = fit(v_online)
+        linear = alpha + jnp.sum(beta * greedy_action(beta_o, action_length), axis=-1)
+    target, active = _clip(linear, y_nb, clip)
+    return target, TargetDiagnostics(clip_active=active, alpha=alpha, beta_norm=safe_norm(beta))

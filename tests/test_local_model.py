@@ -1,0 +1,152 @@
+"""Closed-form local least squares (Eq. 5-6) against float64 numpy.linalg.lstsq; greedy action (Eq. 9)."""
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from lazyq_jax.local_model import (
+    RIDGE,
+    apply_projection,
+    fit_local_linear,
+    greedy_action,
+    precompute_projection,
+    safe_norm,
+)
+
+
+def lstsq(a, v):
+    """float64 reference, one problem at a time: returns (alpha, beta)."""
+    a = np.asarray(a, np.float64).reshape(-1, *a.shape[-2:])
+    v = np.asarray(v, np.float64).reshape(-1, v.shape[-1])
+    sol = np.stack([np.linalg.lstsq(np.column_stack([np.ones(len(x)), x]), y, rcond=None)[0]
+                    for x, y in zip(a, v)])
+    return sol[:, 0], sol[:, 1:]
+
+
+def test_matches_lstsq_on_well_conditioned_batches():
+    rng = np.random.default_rng(0)
+    a = rng.uniform(-0.1, 0.1, (3, 4, 20, 2)).astype(np.float32)
+    v = (0.3 + a @ np.array([2.0, -1.0]) + 0.05 * rng.normal(size=(3, 4, 20))).astype(np.float32)
+    alpha, beta = fit_local_linear(a, v)
+    chex.assert_shape((alpha, beta), ((3, 4), (3, 4, 2)))
+    ra, rb = lstsq(a, v)
+    np.testing.assert_allclose(np.asarray(alpha).ravel(), ra, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(beta).reshape(-1, 2), rb, rtol=1e-4, atol=1e-5)
+
+
+def test_general_n_a_uses_batched_solve():
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(50, 12, 3)).astype(np.float32)
+    v = rng.normal(size=(50, 12)).astype(np.float32)
+    alpha, beta = fit_local_linear(a, v)
+    ra, rb = ridge_reference(a, v)
+    np.testing.assert_allclose(alpha, ra, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(beta, rb, rtol=1e-4, atol=1e-5)
+    _la, lb = lstsq(a, v)  # the ridge (1e-5 of the trace) moves these 12-point fits by < 1e-3
+    np.testing.assert_allclose(beta, lb, rtol=1e-3, atol=1e-4)
+
+
+def test_centring_keeps_accuracy_far_from_the_origin():
+    """Actions offset by 100 with spread 0.01: uncentred float32 normal equations fail here."""
+    rng = np.random.default_rng(2)
+    a = (100.0 + 0.01 * rng.normal(size=(200, 20, 2))).astype(np.float32)
+    v = (1.0 + (a - 100.0) @ np.array([3.0, 1.0]) + 1e-3 * rng.normal(size=(200, 20))).astype(np.float32)
+    _, beta = fit_local_linear(a, v)
+    _, rb = lstsq(a, v)
+    np.testing.assert_allclose(beta, rb, rtol=2e-3, atol=2e-3)
+
+
+def ridge_reference(a, v, ridge=RIDGE):
+    """float64 solution of the documented ridge system ``(A^T A + lam I) beta = A^T y``."""
+    a = np.asarray(a, np.float64)
+    v = np.asarray(v, np.float64)
+    am, vm = a.mean(-2), v.mean(-1)
+    c = a - am[..., None, :]
+    cov = np.einsum("...ka,...kb->...ab", c, c)
+    lam = ridge * np.trace(cov, axis1=-2, axis2=-1) / a.shape[-1]
+    beta = np.linalg.solve(cov + lam[..., None, None] * np.eye(a.shape[-1]),
+                           np.einsum("...ka,...k->...a", c, v - vm[..., None])[..., None])[..., 0]
+    return vm - np.einsum("...a,...a->...", beta, am), beta
+
+
+def test_nearly_collinear_actions_follow_the_ridge_reference():
+    rng = np.random.default_rng(3)
+    t = rng.uniform(-0.1, 0.1, (100, 20, 1))
+    a = (np.concatenate([t, t], -1) + 1e-4 * rng.normal(size=(100, 20, 2))).astype(np.float32)
+    v = (2.0 * t[..., 0] + 0.01 * rng.normal(size=(100, 20))).astype(np.float32)
+    alpha, beta = fit_local_linear(a, v)
+    assert np.isfinite(beta).all()
+    ra, rb = ridge_reference(a, v)
+    fitted = np.asarray(alpha)[:, None] + np.einsum("nka,na->nk", a, beta)
+    ref = ra[:, None] + np.einsum("nka,na->nk", a.astype(np.float64), rb)
+    np.testing.assert_allclose(fitted, ref, atol=5e-3)  # float32 on a cond ~1e5 system
+    # Along the well-determined direction (1, 1) beta matches the reference closely.
+    np.testing.assert_allclose(np.asarray(beta).sum(1), rb.sum(1), rtol=1e-2)
+
+
+def test_degenerate_neighbourhoods_are_finite_with_ridge_behaviour():
+    v = np.arange(20, dtype=np.float32)
+    same = np.ones((20, 2), np.float32)  # all actions equal
+    alpha, beta = fit_local_linear(same, v)
+    np.testing.assert_allclose(beta, 0.0)
+    np.testing.assert_allclose(alpha, v.mean())
+    # Two distinct actions (rank 1): within ~1% of the minimum-norm lstsq solution.
+    two = np.where(np.arange(20)[:, None] < 10, [[0.0, 0.0]], [[0.1, 0.1]]).astype(np.float32)
+    v2 = np.where(np.arange(20) < 10, 1.0, 2.0).astype(np.float32)
+    alpha2, beta2 = fit_local_linear(two, v2)
+    ra, rb = lstsq(two, v2)
+    np.testing.assert_allclose(beta2, rb[0], rtol=2e-2)
+    np.testing.assert_allclose(alpha2, ra[0], rtol=1e-2)
+    np.testing.assert_allclose(alpha2 + two @ np.asarray(beta2), v2, atol=2e-2)
+    # A single point per neighbourhood, zero weights everywhere: finite as well.
+    a0, b0 = fit_local_linear(np.ones((1, 1, 2)), np.ones((1, 1)))
+    a1, b1 = fit_local_linear(np.ones((1, 3, 2)), np.ones((1, 3)), weights=np.zeros((1, 3)))
+    assert np.isfinite([a0, a1]).all() and np.isfinite(b0).all() and np.isfinite(b1).all()
+
+
+def test_ridge_is_invariant_to_action_units():
+    rng = np.random.default_rng(4)
+    a = rng.normal(size=(30, 20, 2)).astype(np.float32)
+    v = rng.normal(size=(30, 20)).astype(np.float32)
+    alpha, beta = fit_local_linear(a, v)
+    alpha_s, beta_s = fit_local_linear(1e-3 * a, v)
+    np.testing.assert_allclose(alpha_s, alpha, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(1e-3 * np.asarray(beta_s), beta, rtol=1e-3, atol=1e-5)
+
+
+def test_weights_mask_equals_fit_on_the_subset():
+    rng = np.random.default_rng(5)
+    a = rng.normal(size=(10, 20, 2)).astype(np.float32)
+    v = rng.normal(size=(10, 20)).astype(np.float32)
+    mask = np.arange(20) < 13
+    alpha, beta = fit_local_linear(a, v, weights=np.broadcast_to(mask, (10, 20)).astype(np.float32))
+    ra, rb = fit_local_linear(a[:, :13], v[:, :13])
+    np.testing.assert_allclose(alpha, ra, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(beta, rb, rtol=1e-5, atol=1e-6)
+
+
+def test_projection_equals_fit_and_jit_equals_eager():
+    rng = np.random.default_rng(6)
+    a = rng.normal(size=(40, 20, 2)).astype(np.float32)
+    v = rng.normal(size=(40, 20)).astype(np.float32)
+    alpha, beta = fit_local_linear(a, v)
+    proj = precompute_projection(a)
+    chex.assert_shape(proj, (40, 3, 20))
+    pa, pb = apply_projection(proj, v)
+    np.testing.assert_allclose(pa, alpha, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(pb, beta, rtol=1e-5, atol=1e-6)
+    ja, jb = jax.jit(fit_local_linear)(a, v)
+    np.testing.assert_allclose(ja, alpha, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(jb, beta, rtol=1e-6, atol=1e-7)
+
+
+def test_greedy_action_direction_length_and_zero_beta():
+    beta = jnp.array([[3.0, 4.0], [0.0, 0.0], [1e-30, 0.0]])
+    act = greedy_action(beta, 0.1)
+    np.testing.assert_allclose(act[0], [0.06, 0.08], rtol=1e-6)
+    np.testing.assert_array_equal(act[1], [0.0, 0.0])  # documented: zero beta -> zero action
+    assert np.isfinite(act).all()
+    grad = jax.grad(lambda b: greedy_action(b, 0.1).sum() + safe_norm(b).sum())(beta)
+    assert np.isfinite(grad).all()
+    np.testing.assert_allclose(jax.jit(greedy_action, static_argnums=1)(beta, 0.1), act)

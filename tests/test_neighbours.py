@@ -1,0 +1,179 @@
+"""Neighbour search against a brute-force NumPy reference (same float32 formula)."""
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from lazyq_jax.neighbours import (
+    TWO_PI,
+    Neighbours,
+    build_index,
+    check_found,
+    find_neighbours,
+    query_neighbours,
+    radius_tables,
+    wrap_angle,
+)
+
+RS, RG, G = 0.06, 0.1, 2 ** (1 / 3)
+
+
+def brute(s, g, qs, qg, k, rs=RS, rg=RG, growth=G):
+    """(level [Q], |B_level| [Q], membership level lam [Q, N]) by the documented float32 formula."""
+    r2s, rgl = radius_tables(rs, rg, growth, np.arange(200))
+    dx = s[None, :, 0] - qs[:, None, 0]
+    dy = s[None, :, 1] - qs[:, None, 1]
+    d = np.abs(wrap_angle(g)[None, :] - wrap_angle(qg)[:, None])
+    lam = np.maximum(np.searchsorted(r2s, (dx * dx + dy * dy).ravel(), side="right"),
+                     np.searchsorted(rgl, np.minimum(d, TWO_PI - d).ravel(), side="right")).reshape(d.shape)
+    level = np.partition(lam, k - 1, axis=1)[:, k - 1]
+    return level, (lam <= level[:, None]).sum(1), lam
+
+
+def assert_exact(nb, s, g, qs, qg, k, **kw):
+    level, count, lam = brute(s, g, qs, qg, k, **kw)
+    idx = np.asarray(nb.idx)
+    chex.assert_shape(nb.idx, (len(qs), k))
+    np.testing.assert_array_equal(np.asarray(nb.level), level)
+    np.testing.assert_array_equal(np.asarray(nb.count), count)
+    assert (np.take_along_axis(lam, idx, 1) <= level[:, None]).all(), "sampled a non-member"
+    assert all(len(set(row)) == k for row in idx.tolist()), "indices not distinct"
+    return level
+
+
+@pytest.fixture(scope="module")
+def wrap_data():
+    """Dense in a small square, goals only within 0.6 of +-pi: levels 0-3 occur and every
+    neighbourhood depends on the wrap-around."""
+    rng = np.random.default_rng(0)
+    n = 4000
+    s = rng.uniform(-0.3, 0.3, (n, 2)).astype(np.float32)
+    g = (np.pi - rng.uniform(-0.6, 0.6, n)).astype(np.float32)  # some above pi: wrapped internally
+    q = np.concatenate([np.arange(300), rng.integers(0, n, 50)])
+    qs = np.concatenate([s[q[:300]], rng.uniform(-0.45, 0.45, (50, 2)).astype(np.float32)])
+    qg = np.concatenate([g[q[:300]], rng.uniform(-np.pi, np.pi, 50).astype(np.float32)])
+    return s, g, qs, qg
+
+
+def test_find_neighbours_matches_brute_force_with_growth_and_wrap(wrap_data):
+    s, g, qs, qg = wrap_data
+    nb = find_neighbours(jax.random.key(0), s, g, qs, qg, k=20)
+    level = assert_exact(nb, s, g, qs, qg, 20)
+    counts = np.bincount(level)
+    assert len(counts) >= 5 and (counts[:4] > 0).all(), f"want levels 0..3 and beyond, got {counts}"
+
+
+def test_wrap_around_pi():
+    s = np.array([[0.0, 0.0]] * 3 + [[0.0, 0.0]], np.float32)
+    g = np.array([np.pi - 0.02, -np.pi + 0.03, 0.0, np.pi], np.float32)
+    nb = find_neighbours(jax.random.key(1), s, g, s[:1], np.array([-np.pi + 0.01], np.float32), k=3)
+    assert int(nb.level[0]) == 0 and int(nb.count[0]) == 3
+    assert set(np.asarray(nb.idx[0]).tolist()) == {0, 1, 3}
+
+
+def test_query_neighbours_jit_matches_host_and_brute_force(wrap_data):
+    s, g, qs, qg = wrap_data
+    index = build_index(s, g, k=20, max_level=16)
+    key = jax.random.key(3)
+    eager = query_neighbours(index, key, jnp.asarray(qs), jnp.asarray(qg))
+    jitted = jax.jit(query_neighbours)(index, key, jnp.asarray(qs), jnp.asarray(qg))
+    check_found(jitted)
+    assert_exact(jitted, s, g, qs, qg, 20)
+    chex.assert_trees_all_equal(eager, jitted)
+    again = jax.jit(query_neighbours)(index, key, jnp.asarray(qs), jnp.asarray(qg))
+    chex.assert_trees_all_equal(jitted, again)
+    other = jax.jit(query_neighbours)(index, jax.random.key(4), jnp.asarray(qs), jnp.asarray(qg))
+    np.testing.assert_array_equal(other.level, jitted.level)
+    assert (np.asarray(other.idx) != np.asarray(jitted.idx)).any()
+
+
+def test_query_inside_scan_of_a_rollout(wrap_data):
+    s, g, _, _ = wrap_data
+    index = build_index(s, g, k=5, max_level=6)
+
+    def step(carry, key):
+        nb = query_neighbours(index, key, carry, jnp.zeros(carry.shape[0]))
+        return carry + 0.01, nb.level
+
+    _, levels = jax.jit(lambda k: jax.lax.scan(step, jnp.zeros((4, 2)), jax.random.split(k, 3)))(jax.random.key(0))
+    chex.assert_shape(levels, (3, 4))
+
+
+def test_level_beyond_max_level_is_reported_not_dropped(wrap_data):
+    s, g, _, _ = wrap_data
+    index = build_index(s, g, k=20, max_level=0)
+    far = jnp.array([[2.0, 2.0], [0.0, 0.0]], jnp.float32)
+    nb = query_neighbours(index, jax.random.key(0), far, jnp.array([np.pi, np.pi], jnp.float32))
+    assert int(nb.level[0]) == -1 and (np.asarray(nb.idx[0]) == -1).all()
+    assert not bool(nb.found[0])
+    with pytest.raises(ValueError, match="max_level"):
+        check_found(nb)
+    # find_neighbours has no limit: the same far query gets its exact (large) level.
+    host = find_neighbours(jax.random.key(0), s, g, np.asarray(far), np.array([np.pi, np.pi], np.float32))
+    assert_exact(host, s, g, np.asarray(far), np.array([np.pi, np.pi], np.float32), 20)
+
+
+def test_crowded_cells_are_exact():
+    """Hundreds of points in one cell and at one location: no per-cell capacity to overflow."""
+    rng = np.random.default_rng(5)
+    s = np.concatenate([np.zeros((600, 2)), rng.uniform(-1, 1, (400, 2))]).astype(np.float32)
+    g = np.concatenate([np.full(600, 0.5), rng.uniform(-np.pi, np.pi, 400)]).astype(np.float32)
+    qs = np.concatenate([s[:5], s[600:640]])
+    qg = np.concatenate([g[:5], g[600:640]])
+    nb = find_neighbours(jax.random.key(0), s, g, qs, qg, k=7)
+    assert_exact(nb, s, g, qs, qg, 7)
+    assert (np.asarray(nb.count[:5]) >= 600).all()
+    index = build_index(s, g, k=7, max_level=3)
+    assert index.max_window >= 600  # the static capacity was read from the data
+    jq = query_neighbours(index, jax.random.key(1), jnp.asarray(qs[:5]), jnp.asarray(qg[:5]))
+    assert_exact(jq, s, g, qs[:5], qg[:5], 7)
+
+
+def test_sampling_is_uniform_without_replacement():
+    """One neighbourhood of m = 30 points, k = 6, 6000 draws: inclusion counts ~ Binomial."""
+    rng = np.random.default_rng(2)
+    m, k, n_draws = 30, 6, 6000
+    s = np.concatenate([rng.uniform(-0.01, 0.01, (m, 2)), rng.uniform(2, 3, (20, 2))]).astype(np.float32)
+    g = np.zeros(m + 20, np.float32)
+    index = build_index(s, g, k=k, max_level=0)
+    nb = jax.jit(query_neighbours)(index, jax.random.key(0), jnp.zeros((n_draws, 2)), jnp.zeros(n_draws))
+    idx = np.asarray(nb.idx)
+    assert (np.asarray(nb.count) == m).all() and idx.max() < m
+    assert all(len(set(r)) == k for r in idx[:500].tolist())
+    freq = np.bincount(idx.ravel(), minlength=m)
+    expected = n_draws * k / m
+    chi2 = ((freq - expected) ** 2 / expected).sum()
+    assert chi2 < 70, f"chi-square {chi2:.1f} with {m - 1} dof"  # p ~ 4e-5 under uniformity
+    # Pairs are uniform too (sampling without replacement): spot-check one pair's rate.
+    both = ((idx == 0).any(1) & (idx == 1).any(1)).mean()
+    assert abs(both - k * (k - 1) / (m * (m - 1))) < 0.015
+
+
+@pytest.mark.parametrize("kw, match", [
+    ({"k": 0}, "k must be"), ({"k": 2.5}, "k must be"), ({"k": 11}, "at least k"),
+    ({"radius_s": -0.1}, "radius_s"), ({"radius_g": 0.0}, "radius_g"), ({"growth": 1.0}, "growth"),
+    ({"growth": float("nan")}, "growth"),
+])
+def test_bad_parameters_raise(kw, match):
+    s = np.zeros((10, 2), np.float32)
+    args = {"k": 3} | kw
+    with pytest.raises(ValueError, match=match):
+        find_neighbours(jax.random.key(0), s, np.zeros(10), s, np.zeros(10), **args)
+
+
+def test_bad_points_raise():
+    s, g = np.zeros((10, 2), np.float32), np.zeros(10, np.float32)
+    bad_s = s.copy()
+    bad_s[3, 1] = np.nan
+    for args, match in [((bad_s, g, s, g), "NaN"), ((s, g, s, np.full(10, np.inf)), "NaN"),
+                        ((s[:, :1], g, s, g), r"\[n, 2\]"), ((s, g[:5], s, g), "match"),
+                        ((s, g, s, g[:4]), "match")]:
+        with pytest.raises(ValueError, match=match):
+            find_neighbours(jax.random.key(0), *args, k=3)
+
+
+def test_neighbours_is_a_pytree():
+    nb = Neighbours(idx=jnp.zeros((2, 3), jnp.int32), level=jnp.zeros(2, jnp.int32), count=jnp.ones(2, jnp.int32))
+    assert len(jax.tree_util.tree_leaves(nb)) == 3

@@ -1,0 +1,106 @@
+"""Targets (Eq. 7-8, 11-14) on small hand-worked examples."""
+
+import functools
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from lazyq_jax.local_model import precompute_projection
+from lazyq_jax.targets import bootstrap_values, dataset_targets, evaluate_in_batches, lazy_target
+from lazyq_jax.types import Transitions
+
+
+def test_lazy_target_eq7_and_eq8():
+    alpha = jnp.array([1.0, 1.0])
+    beta = jnp.array([[3.0, 4.0], [0.0, 0.0]])
+    values = jnp.array([[1.2, 0.0, -1.0], [2.0, 0.5, 0.0]])
+    t7, active7 = lazy_target(alpha, beta, values, 0.1, clip=False)
+    np.testing.assert_allclose(t7, [1.5, 1.0])  # alpha + c|beta| = 1 + 0.1*5
+    assert not np.asarray(active7).any()
+    t8, active8 = lazy_target(alpha, beta, values, 0.1, clip=True)
+    np.testing.assert_allclose(t8, [1.2, 1.0])  # min(1.5, max_j = 1.2); min(1.0, 2.0)
+    np.testing.assert_array_equal(active8, [True, False])
+    g = jax.grad(lambda b: lazy_target(alpha, b, values, 0.1)[0].sum())(beta)
+    assert np.isfinite(g).all()
+
+
+def test_bootstrap_values_not_bootstrapped_when_terminal():
+    y = bootstrap_values(jnp.array([1.0, 0.0, -1.0]), jnp.array([True, False, False]),
+                         jnp.array([5.0, 2.0, 1.0]), 0.9)
+    np.testing.assert_allclose(y, [1.0, 1.8, -0.1], rtol=1e-6)
+
+
+def _dataset():
+    """N = 4 transitions; every neighbourhood is {0, 1, 2}: actions (0,0), (0.1,0), (0,0.1)."""
+    a = jnp.array([[0.0, 0.0], [0.1, 0.0], [0.0, 0.1], [0.05, 0.05]])
+    data = Transitions(s=jnp.zeros((4, 2)), a=a, s_next=jnp.array([[0.0, 0.0], [1.0, 0.0], [0.0, 2.0], [1.0, 1.0]]),
+                       r=jnp.array([0.0, 0.0, 1.0, 0.0]), g=jnp.zeros(4), done=jnp.array([False, False, True, False]))
+    idx = jnp.array([[0, 1, 2]] * 4)
+    return data, idx
+
+
+def v_lin(w, s, g):
+    return s @ w + 0.0 * g
+
+
+def test_dataset_targets_dqn_by_hand():
+    data, idx = _dataset()
+    v = functools.partial(v_lin, jnp.array([1.0, 0.0]))
+    # y = r + 0.5 (1-done) V(s') = [0, 0.5, 1 (terminal)]; exact plane through 3 points:
+    # alpha = 0, beta = (5, 10), c|beta| = 0.1 * sqrt(125) = 1.118; max_j y_j = 1.
+    y, diag = dataset_targets(v, data, idx, gamma=0.5, action_length=0.1, batch_size=3)
+    np.testing.assert_allclose(y, 1.0, rtol=1e-4)
+    assert np.asarray(diag.clip_active).all() and float(diag.clip_fraction) == 1.0
+    np.testing.assert_allclose(diag.alpha, 0.0, atol=1e-5)
+    np.testing.assert_allclose(diag.beta_norm, np.sqrt(125.0), rtol=1e-4)
+    y7, diag7 = dataset_targets(v, data, idx, gamma=0.5, action_length=0.1, clip=False)
+    np.testing.assert_allclose(y7, 0.1 * np.sqrt(125.0), rtol=1e-4)
+    assert not np.asarray(diag7.clip_active).any()
+
+
+def test_dataset_targets_double_dqn_by_hand():
+    data, idx = _dataset()
+    v_t = functools.partial(v_lin, jnp.array([1.0, 0.0]))  # beta_t = (5, 10) as above
+    v_o = functools.partial(v_lin, jnp.array([0.0, -1.0]))  # y_o = [0, 0, 1] -> beta_o = (0, 10)
+    y, _diag = dataset_targets(v_t, data, idx, gamma=0.5, action_length=0.1, v_online=v_o, clip=False)
+    # a_opt = 0.1 * (0, 1); Y = alpha_t + beta_t . a_opt = 0 + 10 * 0.1 = 1.0
+    np.testing.assert_allclose(y, 1.0, rtol=1e-4)
+    v_o2 = functools.partial(v_lin, jnp.array([0.0, 1.0]))  # y_o = [0, 0, 1] too (terminal r): same
+    v_o3 = functools.partial(v_lin, jnp.array([-1.0, 0.0]))  # y_o = [0, -0.5, 1] -> beta_o = (-5, 10)
+    y3, diag3 = dataset_targets(v_t, data, idx, gamma=0.5, action_length=0.1, v_online=v_o3)
+    a_opt = 0.1 * np.array([-5.0, 10.0]) / np.sqrt(125.0)
+    expected = min(float(np.dot([5.0, 10.0], a_opt)), 1.0)
+    np.testing.assert_allclose(y3, expected, rtol=1e-4)
+    np.testing.assert_array_equal(diag3.clip_active, False)
+    y2, _ = dataset_targets(v_t, data, idx, gamma=0.5, action_length=0.1, v_online=v_o2)
+    np.testing.assert_allclose(y2, 1.0, rtol=1e-4)
+
+
+def test_projection_batching_and_jit_agree():
+    rng = np.random.default_rng(0)
+    n, k = 50, 6
+    data = Transitions(s=jnp.asarray(rng.normal(size=(n, 2)), jnp.float32),
+                       a=jnp.asarray(rng.normal(size=(n, 2)), jnp.float32),
+                       s_next=jnp.asarray(rng.normal(size=(n, 2)), jnp.float32),
+                       r=jnp.asarray(rng.normal(size=n), jnp.float32), g=jnp.asarray(rng.normal(size=n), jnp.float32),
+                       done=jnp.asarray(rng.random(n) < 0.2))
+    idx = jnp.asarray(rng.integers(0, n, (n, k)), jnp.int32)
+    v = lambda s, g: jnp.sin(s[:, 0]) + g * s[:, 1]
+    v2 = lambda s, g: jnp.cos(s[:, 1]) - g
+    ref, _ = dataset_targets(v, data, idx, gamma=0.9, action_length=0.1, v_online=v2)
+    proj = precompute_projection(data.a[idx])
+    run = jax.jit(lambda d, p: dataset_targets(v, d, idx, gamma=0.9, action_length=0.1, v_online=v2,
+                                               projection=p, batch_size=7))
+    out, diag = run(data, proj)
+    chex.assert_shape((out, diag.alpha, diag.clip_active), ((n,), (n,), (n,)))
+    np.testing.assert_allclose(out, ref, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(evaluate_in_batches(v, data.s, data.g, 7), v(data.s, data.g), rtol=1e-6)
+
+
+def test_dataset_targets_rejects_bad_idx():
+    data, idx = _dataset()
+    with pytest.raises(ValueError, match="neighbours_idx"):
+        dataset_targets(lambda s, g: g, data, idx[:2], gamma=0.9, action_length=0.1)
