@@ -1,10 +1,13 @@
 """MJX data collection vs native MuJoCo on the same pushes (issue: the push world, §4).
 
 For each batch size, the same finger starts and moves are simulated by
-``jit(vmap(PushEnv.step))`` (MJX, JAX implementation) and by ``mujoco.rollout``
-(native, 1 and 2 threads).  Prints pushes/s, physics steps/s, the MJX/native
-ratio and the largest difference of final disk positions, then the jit compile
-time of the collection function and one paper-scale ``collect`` call.
+``jit(vmap(PushEnv.step))`` (MJX, JAX implementation, in float64 as ``collect``
+uses it and in float32) and by ``mujoco.rollout`` (native, float64, 1 and 2
+threads).  Two sets of pushes: drawn like the collection's ("collect": ~1.5%
+touch the disk) and all aimed at the disk ("contact").  Prints pushes/s, physics
+steps/s, the MJX/native ratios and the largest and 99th-percentile difference of
+final disk positions, then the jit compile time of the collection function and
+one paper-scale ``collect`` call.
 
     .venv/bin/python experiments/bench_collect.py [--batches 1024 4096 16384] [--repeats 3]
 """
@@ -55,42 +58,50 @@ def main():
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args()
 
-    env = PushEnv()
-    steps = env.config.substeps
-    step = jax.jit(jax.vmap(env.step))
+    steps = PushEnv().config.substeps
     print(f"jax {jax.__version__} on {jax.devices()[0].platform} x{jax.local_device_count()}, "
           f"mujoco {mujoco.__version__}; {steps} physics steps per push")
-    print(f"{'pushes':>7} {'set':>8} | {'MJX pushes/s':>12} {'steps/s':>9} | {'native1 st/s':>12} "
-          f"{'native2 st/s':>12} | {'MJX/nat2':>8} {'MJX/nat1':>8} | {'max |disk diff|':>15} {'moved':>6}")
+    print(f"{'pushes':>7} {'set':>8} {'MJX':>7} | {'MJX pushes/s':>12} {'steps/s':>9} | "
+          f"{'native1 st/s':>12} {'native2 st/s':>12} | {'MJX/nat2':>8} {'MJX/nat1':>8} | "
+          f"{'max |diff|':>10} {'p99 |diff|':>10} {'moved':>6}")
     rng = np.random.default_rng(0)
     for batch in args.batches:
         for contact in (False, True):
             start, action = pushes(rng, batch, contact)
-            state = env.reset(jnp.asarray(start))
-            act = jnp.asarray(action)
-            jax.block_until_ready(step(state, act))  # compile outside the timing
-            t_mjx, (nxt, delta) = timed(lambda: jax.block_until_ready(step(state, act)), args.repeats)
+            zeros = np.zeros_like(start)
+            env = PushEnv()
             rates = {}
             for nthread in (1, 2):
                 datas = [mujoco.MjData(env.mj_model) for _ in range(nthread)]
-                t_nat, final = timed(lambda: native_push(env, start, np.zeros_like(start), action,
-                                                         nthread, datas), args.repeats)
+                t_nat, final = timed(lambda: native_push(env, start, zeros, action, nthread, datas),
+                                     args.repeats)
                 rates[nthread] = batch * steps / t_nat
-            mjx_rate = batch * steps / t_mjx
-            diff = np.abs(np.asarray(delta) - final).max()
-            moved = np.mean(np.linalg.norm(final, axis=1) >= 0.01)
-            print(f"{batch:>7} {'contact' if contact else 'collect':>8} | {batch / t_mjx:>12,.0f} "
-                  f"{mjx_rate:>9,.0f} | {rates[1]:>12,.0f} {rates[2]:>12,.0f} | "
-                  f"{mjx_rate / rates[2]:>8.2f} {mjx_rate / rates[1]:>8.2f} | {diff:>15.2e} {moved:>6.1%}")
+            for x64 in (True, False):
+                with jax.enable_x64(x64):
+                    env = PushEnv()
+                    step = jax.jit(jax.vmap(env.step))
+                    state, act = env.reset(jnp.asarray(start)), jnp.asarray(action)
+                    jax.block_until_ready(step(state, act))  # compile outside the timing
+                    t_mjx, (_, delta) = timed(lambda: jax.block_until_ready(step(state, act)),
+                                              args.repeats)
+                mjx_rate = batch * steps / t_mjx
+                diff = np.linalg.norm(np.asarray(delta, np.float64) - final, axis=1)
+                moved = np.mean(np.linalg.norm(final, axis=1) >= 0.01)
+                print(f"{batch:>7} {'contact' if contact else 'collect':>8} "
+                      f"{'float64' if x64 else 'float32':>7} | {batch / t_mjx:>12,.0f} "
+                      f"{mjx_rate:>9,.0f} | {rates[1]:>12,.0f} {rates[2]:>12,.0f} | "
+                      f"{mjx_rate / rates[2]:>8.2f} {mjx_rate / rates[1]:>8.2f} | "
+                      f"{diff.max():>10.2e} {np.quantile(diff, 0.99):>10.2e} {moved:>6.1%}")
 
     cfg = CollectConfig()
     chunk = math.ceil(cfg.n_starts / math.ceil(cfg.n_starts / cfg.chunk_size))
-    keys = _episode_keys(jax.random.key(0), 0, chunk)
-    t = time.perf_counter()
-    jax.jit(jax.vmap(make_episode_fn(env, cfg))).lower(keys).compile()
+    with jax.enable_x64(cfg.push.float64):
+        keys = _episode_keys(jax.random.PRNGKey(0), 0, chunk)
+        t = time.perf_counter()
+        jax.jit(jax.vmap(make_episode_fn(PushEnv(cfg.push), cfg))).lower(keys).compile()
     print(f"\ncollection function (chunk of {chunk} episodes): jit compile {time.perf_counter() - t:.1f} s")
     t = time.perf_counter()
-    data = collect(jax.random.key(0), cfg, progress=False, env=env)
+    data = collect(jax.random.PRNGKey(0), cfg, progress=False)
     print(f"paper-scale collect(): {cfg.n_starts} x {cfg.moves_per_start} moves x {cfg.n_goals} goals "
           f"-> {data.size:,} rows in {time.perf_counter() - t:.1f} s (incl. its compile)")
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -58,13 +59,18 @@ def make_episode_fn(env: PushEnv, config: CollectConfig):
     return episode
 
 
+def _precision(float64: bool):
+    """``jax.enable_x64(True)`` for float64 physics; the caller's precision otherwise."""
+    return jax.enable_x64(True) if float64 else contextlib.nullcontext()
+
+
 def _episode_keys(key: jax.Array, first: int, count: int) -> jax.Array:
     # fold_in by global episode index: the dataset does not depend on the chunking.
     return jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.arange(first, first + count))
 
 
-def collect(key: jax.Array, config: CollectConfig = CollectConfig(), *, progress: bool = True,
-            env: PushEnv | None = None) -> Transitions:
+def collect(key: jax.Array, config: CollectConfig = CollectConfig(), *,
+            progress: bool = True) -> Transitions:
     """Simulate the random pushes of §V-A-3 in jitted MJX batches and relabel for many goals.
 
     Returns ``Transitions`` with ``n_goals`` rows per simulated move, push-major
@@ -76,22 +82,23 @@ def collect(key: jax.Array, config: CollectConfig = CollectConfig(), *, progress
     (the paper resets the disk).  So ``N <= n_starts * moves_per_start * n_goals``;
     with the paper's 5000 x 2 x 100 that is at most 1,000,000 rows.
 
-    Same ``key`` and config give the same dataset, whatever ``chunk_size``.
+    Same ``key`` and config give the same dataset, whatever ``chunk_size``.  The
+    physics runs in float64 when ``config.push.float64`` (see :class:`PushConfig`).
     """
     if not isinstance(config, CollectConfig):
         raise TypeError(f"collect needs a CollectConfig, got {type(config).__name__}")
-    env = env or PushEnv(config.push)
     n = config.n_starts
     n_chunks = math.ceil(n / config.chunk_size)
     chunk = math.ceil(n / n_chunks)  # equal chunks: one compile, little padding
-    run = jax.jit(jax.vmap(make_episode_fn(env, config)))
     parts = []
     bar = tqdm(total=n, desc="collect (episodes)", unit="ep", disable=not progress, leave=False)
-    for c in range(n_chunks):
-        out = jax.device_get(run(_episode_keys(key, c * chunk, chunk)))
-        take = min(chunk, n - c * chunk)
-        parts.append({k: v[:take] for k, v in out.items()})
-        bar.update(take)
+    with _precision(config.push.float64):
+        run = jax.jit(jax.vmap(make_episode_fn(PushEnv(config.push), config)))
+        for c in range(n_chunks):
+            out = jax.device_get(run(_episode_keys(key, c * chunk, chunk)))
+            take = min(chunk, n - c * chunk)
+            parts.append({k: np.asarray(v[:take]) for k, v in out.items()})
+            bar.update(take)
     bar.close()
     eps = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     return _to_transitions(eps, config)

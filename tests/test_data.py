@@ -15,8 +15,8 @@ CFG = CollectConfig(n_starts=96, n_goals=7, chunk_size=48, start_range=0.5)
 
 
 @pytest.fixture(scope="module")
-def data(env):
-    return collect(jax.random.key(3), CFG, progress=False, env=env)
+def data():
+    return collect(jax.random.key(3), CFG, progress=False)
 
 
 def test_shapes_dtypes_and_ranges(data):
@@ -56,11 +56,11 @@ def test_rewards_match_eq15_and_episodes_end_at_a_move(data):
     assert episodes == CFG.n_starts
 
 
-def test_same_seed_same_data_independent_of_chunking(env, data):
-    again = collect(jax.random.key(3), CFG, progress=False, env=env)
+def test_same_seed_same_data_independent_of_chunking(data):
+    again = collect(jax.random.key(3), CFG, progress=False)
     other_chunks = collect(jax.random.key(3), CollectConfig(**{**CFG.__dict__, "chunk_size": 96}),
-                           progress=False, env=env)
-    other_seed = collect(jax.random.key(4), CFG, progress=False, env=env)
+                           progress=False)
+    other_seed = collect(jax.random.key(4), CFG, progress=False)
     for name in ("s", "a", "s_next", "r", "g", "done"):
         np.testing.assert_array_equal(getattr(again, name), getattr(data, name))
         np.testing.assert_array_equal(getattr(other_chunks, name), getattr(data, name))

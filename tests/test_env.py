@@ -29,29 +29,32 @@ def test_axis_push_toward_centre_moves_disk_along_axis(push):
     assert np.all(np.asarray(push_reward(delta, goals + np.pi)) == -1.0)
 
 
-def test_diagonal_push_deflects_toward_x(push):
-    # Damping along y is 4x that along x, so a head-on 45 degree push drifts toward x:
-    # the disk moves at about 12-13 degrees (documented in PushConfig).
-    d = np.array([[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0]]) / np.sqrt(2)
+def test_off_diagonal_push_deflects_toward_the_nearer_axis(push):
+    # Per-axis drag in the 45-degree frame: moving along x or y is cheaper than moving
+    # diagonally, so a head-on push 5 degrees off a diagonal drifts toward the nearer
+    # axis, by about 14 degrees with the default anisotropy (PushConfig docstring).
+    angles = np.radians([40.0, 50.0, 130.0, 220.0, -40.0, -130.0])
+    d = np.stack([np.cos(angles), np.sin(angles)], 1)
     _, delta = push(-0.33 * d, d)
-    deflection = np.abs((angle_deg(delta) - angle_deg(d) + 180) % 360 - 180)
     assert np.all(np.linalg.norm(delta, axis=1) > 0.05)
-    assert np.all((deflection > 25) & (deflection < 40)), deflection
-    # x dominates: the disk moved closer to the x axis than the push direction
-    assert np.all(np.abs(delta[:, 0]) > 3 * np.abs(delta[:, 1])), delta
-    cos = np.sum(delta * d, axis=1) / np.linalg.norm(delta, axis=1)
-    assert np.all(cos < 0.9)  # counted as a wrong direction for the pushed diagonal
-    goals = np.arctan2(d[:, 1], d[:, 0])
-    assert np.all(np.asarray(push_reward(delta, goals)) == -1.0)
+    moved = angle_deg(delta)
+    pushed = np.degrees(angles)
+    deflection = (moved - pushed + 180) % 360 - 180
+    nearer_axis = np.round(pushed / 90) * 90
+    toward_axis = np.sign(nearer_axis - pushed)
+    assert np.all(deflection * toward_axis > 10), deflection
+    assert np.all(np.abs(deflection) < 20), deflection
 
 
-def test_isotropic_friction_does_not_deflect():
-    env = PushEnv(PushConfig(anisotropy=1.0))
-    d = np.array([1.0, 1.0]) / np.sqrt(2)
-    _, delta = jax.jit(env.step)(env.reset(-0.33 * d), jnp.asarray(d))
-    delta = np.asarray(delta)
-    assert np.linalg.norm(delta) > 0.05
-    assert abs(angle_deg(delta) - 45.0) < 0.5
+def test_axis_pushes_are_forgiving_diagonal_pushes_are_not(push):
+    # Same 20-degree error in the push direction: along an axis the disk still moves
+    # within the goal's cone (reward +1), along a diagonal it does not.
+    err = np.radians(20.0)
+    angles = np.array([0.0, np.pi / 2, np.pi / 4, 3 * np.pi / 4])
+    d = np.stack([np.cos(angles + err), np.sin(angles + err)], 1)
+    _, delta = push(-0.33 * d, d)
+    r = np.asarray(push_reward(delta, angles))
+    np.testing.assert_array_equal(r, [1.0, 1.0, -1.0, -1.0])
 
 
 def test_move_away_from_disk_does_not_move_it(push):
@@ -77,17 +80,39 @@ def test_finger_ends_action_length_from_start(push):
     np.testing.assert_allclose(finger - start, 0.1 * unit, atol=1e-6)
 
 
-def test_mjx_agrees_with_native_mujoco(env, push):
-    rng = np.random.default_rng(1)
-    ang = rng.uniform(-np.pi, np.pi, 16)
-    start = rng.uniform(0.32, 0.42, 16)[:, None] * np.stack([np.cos(ang), np.sin(ang)], 1)
-    turn = ang + np.pi + rng.uniform(-0.6, 0.6, 16)  # roughly toward the disk
-    action = np.stack([np.cos(turn), np.sin(turn)], 1)
-    disk = rng.uniform(-0.3, 0.3, (16, 2))
-    _, delta = push(start + disk, action, disk)
-    native = native_push(env, start + disk, disk, action)
+def _contact_pushes(n=16, seed=1):
+    rng = np.random.default_rng(seed)
+    ang = rng.uniform(-np.pi, np.pi, n)
+    start = rng.uniform(0.32, 0.42, n)[:, None] * np.stack([np.cos(ang), np.sin(ang)], 1)
+    turn = ang + np.pi + rng.uniform(-0.6, 0.6, n)  # roughly toward the disk
+    disk = rng.uniform(-0.3, 0.3, (n, 2))
+    return ((start + disk).astype(np.float32), np.stack([np.cos(turn), np.sin(turn)], 1),
+            disk.astype(np.float32))
+
+
+def test_mjx_float64_agrees_with_native_mujoco():
+    finger, action, disk = _contact_pushes()
+    with jax.enable_x64(True):
+        env = PushEnv(PushConfig())
+        assert env.dtype == jnp.float64
+        _, delta = jax.jit(jax.vmap(env.step))(env.reset(finger, disk), jnp.asarray(action))
+        delta = np.asarray(delta)
+    native = native_push(env, finger, disk, action)
     assert np.mean(np.linalg.norm(delta, axis=1) > 0.01) > 0.5  # the check is not vacuous
     np.testing.assert_allclose(disk + delta, native, atol=1e-4)
+
+
+def test_mjx_float32_is_close_to_native(env, push):
+    # float32 rounding is amplified by the deflection dynamics: mm, not 1e-4 (README).
+    finger, action, disk = _contact_pushes()
+    _, delta = push(finger, action, disk)
+    np.testing.assert_allclose(disk + delta, native_push(env, finger, disk, action), atol=5e-3)
+
+
+def test_precision_mismatch_is_an_error(env):
+    with jax.enable_x64(True):
+        with pytest.raises(RuntimeError, match="same precision"):
+            jax.jit(env.step)(env.reset(jnp.array([0.8, 0.0])), jnp.array([1.0, 0.0]))
 
 
 def test_bad_actions_and_starts(env):

@@ -48,12 +48,14 @@ def load_mj_model(config: PushConfig = PushConfig()) -> mujoco.MjModel:
     model.geom_size[geom("finger"), 0] = config.finger_radius
     model.geom_size[geom("table"), :2] = config.table_half_size
     body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "disk")
-    # Scaling mass and inertia together keeps the (irrelevant) rotational inertia consistent.
+    # Scaling mass and inertia together keeps the drag's equivalent box (its size is
+    # sqrt(6 I / m)) and so the anisotropic term independent of the mass.
     scale = config.disk_mass / model.body_mass[body]
     model.body_mass[body] *= scale
     model.body_inertia[body] *= scale
-    model.dof_damping[joint("disk_x")] = config.damping_x
-    model.dof_damping[joint("disk_y")] = config.damping_x * config.anisotropy
+    model.dof_damping[joint("disk_x")] = config.damping
+    model.dof_damping[joint("disk_y")] = config.damping
+    model.opt.density = config.anisotropy
     model.pair_solref[0] = (config.contact_timeconst, config.contact_dampratio)
     model.opt.timestep = config.timestep
     model.opt.iterations = config.solver_iterations
@@ -68,7 +70,7 @@ def finger_path(start_xy: jax.Array, action: jax.Array, config: PushConfig) -> j
     ``settle_substeps``.  MJX and native MuJoCo both follow this path.
     """
     n = config.move_substeps
-    frac = jnp.minimum(jnp.arange(1, config.substeps + 1, dtype=jnp.float32) / n, 1.0)
+    frac = jnp.minimum(jnp.arange(1, config.substeps + 1, dtype=start_xy.dtype) / n, 1.0)
     return start_xy[..., None, :] + frac[:, None] * action[..., None, :]
 
 
@@ -85,6 +87,10 @@ def normalize_action(action: jax.Array, action_length: float) -> jax.Array:
     return jnp.where(ok, action * (action_length / jnp.where(ok, norm, 1.0)), 0.0)
 
 
+def _x64() -> bool:
+    return bool(jax.config.jax_enable_x64)
+
+
 def _is_concrete(*xs) -> bool:
     return not any(isinstance(x, jax.core.Tracer) for x in xs)
 
@@ -96,10 +102,16 @@ class PushEnv:
     >>> state = env.reset(jnp.array([-0.4, 0.0]))            # disk at the origin
     >>> state, disk_delta = env.step(state, jnp.array([1.0, 0.0]))
 
+    The physics runs in the precision JAX is in when the env is built (float64
+    inside ``with jax.enable_x64(True)``, as :func:`lazyq_jax.collect` does; float32
+    otherwise) and must be traced in that same precision.  States and outputs are
+    float32 either way.
+
     Attributes:
       config: the :class:`PushConfig`.
       mj_model: the native ``mujoco.MjModel`` (for ``mujoco.rollout`` or a viewer).
       mjx_model: the same model on the MJX JAX implementation.
+      dtype: the physics precision, ``jnp.float32`` or ``jnp.float64``.
     """
 
     def __init__(self, config: PushConfig = PushConfig()):
@@ -110,6 +122,7 @@ class PushEnv:
         # The JAX implementation, explicitly: runs on CPU and GPU without warp.
         self.mjx_model = mjx.put_model(self.mj_model, impl="jax")
         self._data0 = mjx.make_data(self.mjx_model, impl="jax")
+        self.dtype = jnp.float64 if _x64() else jnp.float32
 
     def reset(self, finger_xy: jax.Array, disk_xy: jax.Array | None = None) -> PushState:
         """A state with the finger at ``finger_xy`` and the disk at ``disk_xy`` (default origin).
@@ -140,7 +153,7 @@ class PushEnv:
         dist = jnp.linalg.norm(rel, axis=-1, keepdims=True)
         safe = jnp.where(dist > 0, rel / jnp.where(dist > 0, dist, 1.0), jnp.array([1.0, 0.0]))
         pushed_out = disk + safe * (min_dist + 1e-4)
-        return PushState(jnp.where(dist > min_dist, finger, pushed_out), disk)
+        return PushState(jnp.where(dist > min_dist, finger, pushed_out).astype(jnp.float32), disk)
 
     def step(self, state: PushState, action: jax.Array) -> tuple[PushState, jax.Array]:
         """One quasistatic push: the finger moves by ``action`` rescaled to ``action_length``.
@@ -149,18 +162,22 @@ class PushEnv:
         Non-finite actions raise ``ValueError`` outside ``jit`` and are no-ops inside it
         (see :func:`normalize_action`).  Unbatched; use ``jax.vmap`` for batches.
         """
+        if (self.dtype == jnp.float64) != _x64():
+            raise RuntimeError(
+                f"this PushEnv simulates in {jnp.dtype(self.dtype).name} but is traced with "
+                f"jax_enable_x64={_x64()}; build and call it in the same precision (e.g. both "
+                "inside `with jax.enable_x64(True):`)")
         if _is_concrete(action) and not np.all(np.isfinite(np.asarray(action))):
             raise ValueError(f"step: action must be finite, got {np.asarray(action)}")
+        dtype = self.dtype
         action = normalize_action(action, self.config.action_length)
-        path = finger_path(state.finger_xy, action, self.config)
-        qpos0 = state.disk_xy.astype(self._data0.qpos.dtype)
-        data = self._data0.replace(qpos=qpos0)
+        path = finger_path(state.finger_xy.astype(dtype), action.astype(dtype), self.config)
+        data = self._data0.replace(qpos=state.disk_xy.astype(dtype))
 
         def substep(data, finger_xy):
-            mocap = jnp.concatenate([finger_xy, jnp.zeros(1, finger_xy.dtype)])[None]
-            data = data.replace(mocap_pos=mocap.astype(data.mocap_pos.dtype))
-            return mjx.step(self.mjx_model, data), None
+            mocap = jnp.concatenate([finger_xy, jnp.zeros(1, dtype)])[None]
+            return mjx.step(self.mjx_model, data.replace(mocap_pos=mocap)), None
 
         data, _ = jax.lax.scan(substep, data, path)
         disk = data.qpos[:2].astype(jnp.float32)
-        return PushState(path[-1], disk), disk - state.disk_xy
+        return PushState(path[-1].astype(jnp.float32), disk), disk - state.disk_xy
