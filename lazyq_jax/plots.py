@@ -39,7 +39,9 @@ def fig3_value(value_fn: Callable, config: Config, path: Path, goals=(np.pi / 2,
         im = ax.pcolormesh(xs, xs, v.reshape(len(xs), len(xs)), cmap="viridis", vmin=vmin,
                            vmax=vmax, shading="auto")
         ax.add_patch(plt.Circle((0, 0), config.collect.push.disk_radius, fill=False, color="w", lw=1.5))
-        ax.arrow(0, 0, 0.35 * np.cos(g), 0.35 * np.sin(g), color="w", width=0.012, head_width=0.06)
+        ax.annotate("", xy=(0.65 * np.cos(g), 0.65 * np.sin(g)), xytext=(0.33 * np.cos(g), 0.33 * np.sin(g)),
+                    arrowprops={"arrowstyle": "-|>", "color": "w", "lw": 2.5})
+        ax.text(0, 0, "disk", ha="center", va="center", color="0.3")
         ax.set_title(f"({letter}) V(s, g = {_pi_fraction(g)})")
         ax.set_xlabel("finger x (relative to disk)")
         ax.set_ylabel("finger y")
@@ -56,8 +58,8 @@ def fig4_outcomes(results: dict, path: Path):
     keys = ("correct", "wrong", "not_pushed")
     for row in per_goal:
         g = row["goal"]
-        cx, cy = 0.5 + 0.37 * np.cos(g), 0.5 + 0.37 * np.sin(g)
-        ax = fig.add_axes((cx - 0.065, cy - 0.05, 0.13, 0.1))
+        cx, cy = 0.5 + 0.39 * np.cos(g), 0.5 + 0.39 * np.sin(g)
+        ax = fig.add_axes((cx - 0.05, cy - 0.04, 0.1, 0.08))
         total = max(sum(row[k] for k in keys), 1)
         ax.bar(range(3), [row[k] / total for k in keys], color=[COLORS[k] for k in keys])
         ax.set_ylim(0, 1)
