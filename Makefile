@@ -1,6 +1,8 @@
 # Two commands do all the set-up: `make train` and `make test`.
 # Each creates .venv/ and installs the package (editable) on first use; the
 # stamp file makes re-runs skip the install unless pyproject.toml changed.
+# `make train` resumes its run directory: a finished run is only re-evaluated;
+# ARGS="--overwrite" starts it afresh, RUN=runs/other uses another directory.
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -17,7 +19,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 train: $(STAMP)
-	$(PY) -m lazyq_jax train --run-dir $(RUN) $(ARGS)
+	$(PY) -m lazyq_jax train --run-dir $(RUN) --resume $(ARGS)
 
 eval: $(STAMP)
 	$(PY) -m lazyq_jax evaluate --run-dir $(RUN) $(ARGS)

@@ -24,7 +24,7 @@ from lazyq_jax.networks import ValueNetwork
 from lazyq_jax.pipeline import fit
 from lazyq_jax.policy import LazyPolicy, lazy_policy, make_lazy_policy
 from lazyq_jax.targets import (TargetDiagnostics, bootstrap_values, dataset_targets,
-                               evaluate_in_batches, lazy_target)
+                               double_dqn_target, evaluate_in_batches, lazy_target, local_fits)
 from lazyq_jax.train import TrainState, make_train, make_train_for
 from lazyq_jax.types import Transitions
 
@@ -35,7 +35,7 @@ __all__ = [
     "GridIndex", "LazyPolicy", "NeighbourConfig", "Neighbours", "PushConfig", "PushEnv",
     "PushState", "TargetDiagnostics", "TrainConfig", "TrainState", "Transitions", "ValueNetwork",
     "apply_projection", "bootstrap_values", "build_index", "check_found", "collect",
-    "dataset_summary", "dataset_targets", "evaluate_in_batches", "evaluate_run", "find_neighbours",
+    "dataset_summary", "dataset_targets", "double_dqn_target", "local_fits", "evaluate_in_batches", "evaluate_run", "find_neighbours",
     "fit", "fit_local_linear", "greedy_action", "lazy_policy", "lazy_target", "load_checkpoint",
     "load_dataset", "make_lazy_policy", "make_train", "make_train_for", "override", "precompute_projection",
     "preset", "protocol_a", "protocol_b", "push_reward", "query_neighbours", "safe_norm",

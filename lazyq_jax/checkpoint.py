@@ -104,7 +104,9 @@ def load_checkpoint(directory: str | os.PathLike, cycle: int | None = None,
     return state.replace(key=jnp.asarray(state.key, jnp.uint32)), config
 
 
-_MUST_MATCH = ("width", "depth", "learning_rate", "gamma", "double_dqn", "clip", "batch_size")
+# Fields that change what a cycle computes (``cycles`` may grow: a run can be extended).
+_MUST_MATCH = ("width", "depth", "learning_rate", "gamma", "double_dqn", "clip", "batch_size",
+               "epochs", "resample_neighbours")
 
 
 def _check_compatible(path: Path, stored: Config, expect: Config) -> None:

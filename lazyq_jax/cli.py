@@ -45,7 +45,8 @@ def cmd_train(args) -> None:
     config = _config(args)
     run_dir = args.run_dir or Path("runs") / args.preset
     t = time.perf_counter()
-    fit(config, run_dir, resume=args.resume, progress=not args.no_progress)
+    fit(config, run_dir, resume=args.resume, overwrite=args.overwrite,
+        progress=not args.no_progress)
     print(f"trained in {time.perf_counter() - t:.1f} s")
     if not args.no_eval:
         _evaluate(run_dir, [])
@@ -72,13 +73,7 @@ def _evaluate(run_dir: Path, assignments: list[str], figures: bool = True) -> No
 
 
 def cmd_evaluate(args) -> None:
-    from lazyq_jax.evaluate import EvalError
-    from lazyq_jax.checkpoint import CheckpointError
-
-    try:
-        _evaluate(args.run_dir, args.set or [], figures=not args.no_figures)
-    except (EvalError, CheckpointError) as e:
-        raise SystemExit(f"error: {e}")
+    _evaluate(args.run_dir, args.set or [], figures=not args.no_figures)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -89,7 +84,10 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=cmd_collect)
     p = sub.add_parser("train", help="collect (or reuse), find neighbours, train, checkpoint")
     _add_common(p)
-    p.add_argument("--resume", action="store_true", help="continue from the newest checkpoint")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from the newest checkpoint (start afresh if there is none)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="delete the run directory's checkpoints and train afresh")
     p.add_argument("--no-eval", action="store_true", help="skip the evaluation after training")
     p.set_defaults(func=cmd_train)
     for name in ("evaluate", "plot"):
@@ -106,10 +104,17 @@ def main(argv: list[str] | None = None) -> int:
     _add_common(p)
     p.set_defaults(func=lambda a: print(json.dumps(to_dict(_config(a)), indent=1)))
     args = parser.parse_args(argv)
+    from lazyq_jax.checkpoint import CheckpointError
+    from lazyq_jax.data import DatasetError
+    from lazyq_jax.evaluate import EvalError
+    from lazyq_jax.pipeline import RunDirError
+
     try:
         args.func(args)
     except ConfigError as e:
         parser.exit(2, f"config error: {e}\n")
+    except (CheckpointError, DatasetError, EvalError, RunDirError) as e:
+        parser.exit(2, f"error: {e}\n")
     return 0
 
 

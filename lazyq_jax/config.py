@@ -21,11 +21,16 @@ def _check(cond: bool, msg: str) -> None:
         raise ConfigError(msg)
 
 
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
 def _positive(obj: Any, *names: str) -> None:
     for name in names:
         value = getattr(obj, name)
         _check(
-            isinstance(value, (int, float)) and math.isfinite(value) and value > 0,
+            isinstance(value, (int, float)) and not isinstance(value, bool)
+            and math.isfinite(value) and value > 0,
             f"{type(obj).__name__}.{name} must be a finite number > 0, got {value!r}",
         )
 
@@ -48,8 +53,8 @@ class PushConfig:
     unstable equilibrium.  So, as in the paper, axis directions are forgiving and
     diagonal directions are sensitive to the contact point and push direction.
     ``anisotropy = 0`` leaves only the isotropic damping (raise ``damping`` then,
-    e.g. to 10, or the disk coasts).  The drag is integrated explicitly: keep
-    ``anisotropy <= 300`` at the default mass and timestep.
+    e.g. to 10, or the disk coasts).  The drag is integrated explicitly, so
+    ``anisotropy`` is limited to ``300 * (disk_mass / 0.1) * (0.01 / timestep)``.
 
     ``float64``: :func:`lazyq_jax.collect` simulates in float64 (the same speed on
     CPU; it agrees with native MuJoCo to ~1e-5, while float32 rounding is amplified
@@ -85,13 +90,19 @@ class PushConfig:
         _positive(self, "disk_radius", "finger_radius", "table_half_size", "action_length",
                   "timestep", "damping", "disk_mass", "contact_timeconst",
                   "contact_dampratio", "move_threshold")
-        _check(isinstance(self.anisotropy, (int, float)) and 0 <= self.anisotropy <= 1e4,
-               f"PushConfig.anisotropy must be a number in [0, 1e4], got {self.anisotropy!r}")
+        # The drag is integrated explicitly: stable while timestep * drag'(v) / mass stays
+        # small; 300 at the default mass 0.1 and timestep 0.01 (measured), scaled.
+        limit = 300.0 * (self.disk_mass / 0.1) * (0.01 / self.timestep)
+        _check(isinstance(self.anisotropy, (int, float)) and not isinstance(self.anisotropy, bool)
+               and 0 <= self.anisotropy <= limit,
+               f"PushConfig.anisotropy must be a number in [0, {limit:g}] (explicit drag "
+               f"integration is unstable above that for this disk_mass and timestep), "
+               f"got {self.anisotropy!r}")
         for name in ("move_substeps", "solver_iterations", "ls_iterations"):
             value = getattr(self, name)
-            _check(isinstance(value, int) and value >= 1,
+            _check(_is_int(value) and value >= 1,
                    f"PushConfig.{name} must be an integer >= 1, got {value!r}")
-        _check(isinstance(self.settle_substeps, int) and self.settle_substeps >= 0,
+        _check(_is_int(self.settle_substeps) and self.settle_substeps >= 0,
                f"PushConfig.settle_substeps must be an integer >= 0, got {self.settle_substeps!r}")
         _check(-1.0 < self.cos_threshold < 1.0,
                f"PushConfig.cos_threshold must lie in (-1, 1), got {self.cos_threshold!r}")
@@ -129,7 +140,7 @@ class CollectConfig:
     def __post_init__(self) -> None:
         for name in ("n_starts", "moves_per_start", "n_goals", "chunk_size"):
             value = getattr(self, name)
-            _check(isinstance(value, int) and value >= 1,
+            _check(_is_int(value) and value >= 1,
                    f"CollectConfig.{name} must be an integer >= 1, got {value!r}")
         _positive(self, "start_range")
         _check(self.start_range > self.push.contact_distance,
@@ -148,7 +159,7 @@ class NeighbourConfig:
     growth: float = 2 ** (1 / 3)
 
     def __post_init__(self) -> None:
-        _check(isinstance(self.k, int) and self.k >= 1,
+        _check(_is_int(self.k) and self.k >= 1,
                f"NeighbourConfig.k must be an integer >= 1, got {self.k!r}")
         _positive(self, "radius_s", "radius_g")
         _check(self.growth > 1, f"NeighbourConfig.growth must be > 1, got {self.growth!r}")
@@ -170,7 +181,7 @@ class TrainConfig:
     epochs: int = 10
     batch_size: int = 4096
     learning_rate: float = 1e-3
-    width: int = 64
+    width: int = 32  # chosen by experiments/width_study.py (README, "Training")
     depth: int = 9
     double_dqn: bool = False
     clip: bool = True
@@ -181,9 +192,9 @@ class TrainConfig:
         _check(0.0 <= self.gamma < 1.0, f"TrainConfig.gamma must lie in [0, 1), got {self.gamma!r}")
         for name in ("cycles", "epochs", "batch_size", "width", "target_batch_size"):
             value = getattr(self, name)
-            _check(isinstance(value, int) and value >= 1,
+            _check(_is_int(value) and value >= 1,
                    f"TrainConfig.{name} must be an integer >= 1, got {value!r}")
-        _check(isinstance(self.depth, int) and self.depth >= 2,
+        _check(_is_int(self.depth) and self.depth >= 2,
                f"TrainConfig.depth (number of Dense layers) must be an integer >= 2, got {self.depth!r}")
         _positive(self, "learning_rate")
 
@@ -224,11 +235,11 @@ class EvalConfig:
         for name in ("n_directions", "episodes_per_direction", "max_steps", "long_rollouts",
                      "long_max_steps"):
             value = getattr(self, name)
-            _check(isinstance(value, int) and value >= 1,
+            _check(_is_int(value) and value >= 1,
                    f"EvalConfig.{name} must be an integer >= 1, got {value!r}")
-        _check(isinstance(self.seed, int) and self.seed >= 0,
+        _check(_is_int(self.seed) and self.seed >= 0,
                f"EvalConfig.seed must be an integer >= 0, got {self.seed!r}")
-        _check(isinstance(self.max_level, int) and self.max_level >= 0,
+        _check(_is_int(self.max_level) and self.max_level >= 0,
                f"EvalConfig.max_level must be an integer >= 0, got {self.max_level!r}")
         _positive(self, "start_range", "long_range", "long_finger_box", "success_radius")
 
@@ -244,8 +255,13 @@ class Config:
     eval: EvalConfig = EvalConfig()
 
     def __post_init__(self) -> None:
-        _check(isinstance(self.seed, int) and self.seed >= 0,
+        _check(_is_int(self.seed) and self.seed >= 0,
                f"Config.seed must be an integer >= 0, got {self.seed!r}")
+        contact = self.collect.push.contact_distance
+        for name in ("start_range", "long_finger_box"):
+            value = getattr(self.eval, name)
+            _check(value > contact, f"eval.{name}={value} must exceed the finger-disk contact "
+                   f"distance {contact} so that finger starts outside the disk exist")
 
 
 PRESETS = {

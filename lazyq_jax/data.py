@@ -54,7 +54,7 @@ def make_episode_fn(env: PushEnv, config: CollectConfig):
         reward = push_reward(delta[:, None, :], goals, move_threshold=pc.move_threshold,
                              cos_threshold=pc.cos_threshold)
         return {"s": s, "a": jnp.broadcast_to(action, s.shape), "s_next": s_next, "delta": delta,
-                "g": goals, "r": reward}
+                "g": goals, "r": reward, "moved": disk_moved(delta, pc.move_threshold)}
 
     return episode
 
@@ -110,7 +110,7 @@ def _to_transitions(eps: dict, config: CollectConfig) -> Transitions:
         bad = int(np.sum(~np.all(np.isfinite(delta), axis=-1)))
         raise FloatingPointError(f"collect: the physics returned non-finite disk positions for "
                                  f"{bad} pushes; check the PushConfig solver settings")
-    moved = np.asarray(disk_moved(delta, config.push.move_threshold))  # [E, T]
+    moved = eps["moved"]  # [E, T], the same test that made the rewards nonzero
     # A move exists if no earlier move of its episode moved the disk.
     ended_before = np.cumsum(moved, axis=1) - moved > 0
     keep = ~ended_before  # [E, T]
@@ -171,8 +171,7 @@ def load_dataset(path: str | os.PathLike) -> tuple[Transitions, CollectConfig, i
     """
     path = Path(path)
     if not path.is_file():
-        raise DatasetError(f"{path}: no such dataset file (create one with "
-                           "`python -m lazyq_jax collect`)")
+        raise DatasetError(f"{path}: no such dataset file")
     try:
         with np.load(path, allow_pickle=False) as z:
             if "meta" not in z.files:

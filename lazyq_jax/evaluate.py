@@ -7,17 +7,18 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from lazyq_jax.checkpoint import load_checkpoint
-from lazyq_jax.config import Config, EvalConfig
+from lazyq_jax.config import EvalConfig, to_dict
 from lazyq_jax.data import load_dataset
 from lazyq_jax.env import PushEnv, PushState, disk_moved, sample_outside_disk
 from lazyq_jax.policy import LazyPolicy, lazy_policy, make_lazy_policy
+from lazyq_jax.pipeline import purpose_key
 from lazyq_jax.train import make_train_for
 
 NOT_PUSHED, CORRECT, WRONG = 0, 1, 2
@@ -36,8 +37,27 @@ def _directions(n: int) -> jax.Array:
     return jnp.arange(n, dtype=jnp.float32) * (2 * jnp.pi / n)
 
 
-def protocol_a(env: PushEnv, policy: LazyPolicy, key: jax.Array, cfg: EvalConfig) -> Rollouts:
-    """Fig. 4: push the disk at the origin toward each of ``n_directions`` goals."""
+Act = Callable[[jax.Array, jax.Array, jax.Array], tuple[jax.Array, jax.Array]]
+
+
+def policy_act(policy: LazyPolicy) -> Act:
+    """``act(key, s[B, 2], g[B]) -> (actions[B, 2], found[B])`` of the lazy policy (Eq. 9)."""
+
+    def act(key, s, g):
+        action, _, found = lazy_policy(policy, key, s, g)
+        return action, found
+
+    return act
+
+
+def protocol_a(env: PushEnv, act: Act, key: jax.Array, cfg: EvalConfig) -> Rollouts:
+    """Fig. 4: push the disk at the origin toward each of ``n_directions`` goals.
+
+    The finger starts uniform in ``[-start_range, start_range]^2`` outside the disk with
+    ``finger . goal_direction < 0`` (behind the disk).  An episode ends at the first push
+    that moves the disk (``|delta| >= move_threshold``): CORRECT if ``cos(delta, g) >= 0.9``
+    (§V-B), else WRONG; NOT_PUSHED after ``max_steps``.
+    """
     goals = jnp.repeat(_directions(cfg.n_directions), cfg.episodes_per_direction)
     k_start, k_run = jax.random.split(key)
     contact = env.config.contact_distance
@@ -50,21 +70,25 @@ def protocol_a(env: PushEnv, policy: LazyPolicy, key: jax.Array, cfg: EvalConfig
     state = env.reset(finger, jnp.zeros_like(finger))
     cos_min = env.config.cos_threshold
 
-    def outcome_of(delta, g, state, new_state, moved):
+    def outcome_of(delta, g, new_state):
         # §V-B counts a push as correct when cos >= 0.9 (Eq. 15's reward demands > 0.9).
         cos = (jnp.sum(delta * jnp.stack([jnp.cos(g), jnp.sin(g)], -1), -1)
                / jnp.maximum(jnp.linalg.norm(delta, axis=-1), 1e-12))
-        return jnp.where(cos >= cos_min, CORRECT, WRONG), moved
+        return jnp.where(cos >= cos_min, CORRECT, WRONG), disk_moved(delta, threshold)
 
-    return _rollout(env, policy, k_run, state, lambda st: goals, cfg.max_steps, outcome_of)
+    threshold = env.config.move_threshold
+    done0 = jnp.zeros(goals.shape, bool)
+    return _rollout(env, act, k_run, state, lambda st: goals, cfg.max_steps, outcome_of, done0)
 
 
-def protocol_b(env: PushEnv, policy: LazyPolicy, key: jax.Array, cfg: EvalConfig,
+def protocol_b(env: PushEnv, act: Act, key: jax.Array, cfg: EvalConfig,
                table_half_size: float) -> tuple[Rollouts, jax.Array]:
     """Fig. 5: reach random targets with axis goals chosen by a high-level controller.
 
-    Returns the rollouts (outcome CORRECT = success, WRONG = off the table,
-    NOT_PUSHED = out of time) and the targets ``[B, 2]``.
+    Returns the rollouts (outcome CORRECT = success, WRONG = off the table or
+    non-finite physics, NOT_PUSHED = out of time) and the targets ``[B, 2]``.  A
+    rollout whose disk starts within ``success_radius`` of its target is a success
+    with 0 steps.
     """
     b = cfg.long_rollouts
     k_disk, k_target, k_finger, k_run = jax.random.split(key, 4)
@@ -81,25 +105,33 @@ def protocol_b(env: PushEnv, policy: LazyPolicy, key: jax.Array, cfg: EvalConfig
         axes = jnp.stack([jnp.cos(AXIS_GOALS), jnp.sin(AXIS_GOALS)], -1)  # [4, 2]
         return AXIS_GOALS[jnp.argmax(direction @ axes.T, axis=-1)]
 
-    def outcome_of(delta, g, state, new_state, moved):
-        reached = jnp.linalg.norm(target - new_state.disk_xy, axis=-1) < cfg.success_radius
-        off = jnp.any(jnp.abs(new_state.disk_xy) > table_half_size, axis=-1)
-        return jnp.where(reached, CORRECT, WRONG), reached | off
+    def reached(disk):
+        return jnp.linalg.norm(target - disk, axis=-1) < cfg.success_radius
 
-    return _rollout(env, policy, k_run, state, controller, cfg.long_max_steps, outcome_of), target
+    def outcome_of(delta, g, new_state):
+        ok = reached(new_state.disk_xy)
+        off = ~jnp.all(jnp.abs(new_state.disk_xy) <= table_half_size, axis=-1)  # NaN is off too
+        return jnp.where(ok, CORRECT, WRONG), ok | off
+
+    rollouts = _rollout(env, act, k_run, state, controller, cfg.long_max_steps, outcome_of,
+                        reached(disk))
+    return rollouts, target
 
 
-def _rollout(env, policy, key, state, goal_of, steps, outcome_of) -> Rollouts:
-    """Batched episodes in one ``lax.scan``; finished episodes stay frozen."""
+def _rollout(env, act, key, state, goal_of, steps, outcome_of, done0) -> Rollouts:
+    """Batched episodes in one ``lax.scan``; finished episodes stay frozen.
+
+    ``done0[B]``: episodes that are already CORRECT before the first step.
+    """
     batch = state.finger_xy.shape[0]
     step = jax.vmap(env.step)
 
     def body(carry, k):
         state, done, outcome, n_steps, lost = carry
         g = goal_of(state)
-        action, _, found = lazy_policy(policy, k, state.relative, g)
+        action, found = act(k, state.relative, g)
         new_state, delta = step(state, action)
-        new_outcome, ends = outcome_of(delta, g, state, new_state, disk_moved(delta))
+        new_outcome, ends = outcome_of(delta, g, new_state)
         live = ~done
         state = jax.tree.map(lambda new, old: jnp.where(live[:, None], new, old), new_state, state)
         outcome = jnp.where(live & ends, new_outcome, outcome)
@@ -107,7 +139,7 @@ def _rollout(env, policy, key, state, goal_of, steps, outcome_of) -> Rollouts:
         return carry, (state.finger_xy, state.disk_xy)
 
     zeros = jnp.zeros(batch, jnp.int32)
-    init = (state, jnp.zeros(batch, bool), zeros + NOT_PUSHED, zeros, zeros)
+    init = (state, done0, jnp.where(done0, CORRECT, NOT_PUSHED), zeros, zeros)
     (_, _, outcome, n_steps, lost), (fingers, disks) = jax.lax.scan(
         body, init, jax.random.split(key, steps))
     fingers = jnp.concatenate([state.finger_xy[None], fingers])
@@ -124,15 +156,19 @@ def summarize_a(rollouts: Rollouts, cfg: EvalConfig) -> dict:
     axis = np.isclose(np.mod(goals, np.pi / 2), 0, atol=1e-5) | np.isclose(
         np.mod(goals, np.pi / 2), np.pi / 2, atol=1e-5)
     rate = lambda rows: float(np.mean(rows == CORRECT)) if rows.size else float("nan")
+    final = np.asarray(rollouts.disk)[-1]
     return {"per_goal": per_goal, "axis_correct_rate": rate(outcome[axis]),
             "overall_correct_rate": rate(outcome), "policy_steps_without_neighbours":
-            int(np.sum(np.asarray(rollouts.lost)))}
+            int(np.sum(np.asarray(rollouts.lost))),
+            "non_finite_physics": int(np.sum(~np.all(np.isfinite(final), axis=-1)))}
 
 
 def summarize_b(rollouts: Rollouts) -> dict:
     outcome = np.asarray(rollouts.outcome)
+    final = np.asarray(rollouts.disk)[-1]
     return {"successes": int(np.sum(outcome == CORRECT)), "rollouts": int(outcome.size),
             "off_table": int(np.sum(outcome == WRONG)), "out_of_time": int(np.sum(outcome == NOT_PUSHED)),
+            "non_finite_physics": int(np.sum(~np.all(np.isfinite(final), axis=-1))),
             "policy_steps_without_neighbours": int(np.sum(np.asarray(rollouts.lost)))}
 
 
@@ -164,19 +200,20 @@ def evaluate_run(run_dir: str | Path, eval_config: EvalConfig | None = None, *,
     config, state, trainer, data = load_run(run_dir)
     cfg = eval_config or config.eval
     t = time.perf_counter()
-    env = PushEnv(config.collect.push)
+    env = PushEnv(config.collect.push)  # float32 physics here (see the README's design notes)
     nc = config.neighbours
     policy = make_lazy_policy(trainer.value_fn(state), data, gamma=config.train.gamma,
                               action_length=config.collect.push.action_length, k=nc.k,
                               radius_s=nc.radius_s, radius_g=nc.radius_g, growth=nc.growth,
                               max_level=cfg.max_level)
-    k_a, k_b = jax.random.split(jax.random.PRNGKey(cfg.seed))
-    run_a = jax.jit(lambda p, k: protocol_a(env, p, k, cfg))
-    run_b = jax.jit(lambda p, k: protocol_b(env, p, k, cfg, config.collect.push.table_half_size))
+    k_a, k_b = jax.random.split(purpose_key(cfg.seed, "eval"))
+    run_a = jax.jit(lambda p, k: protocol_a(env, policy_act(p), k, cfg))
+    run_b = jax.jit(lambda p, k: protocol_b(env, policy_act(p), k, cfg,
+                                            config.collect.push.table_half_size))
     rollouts_a = jax.device_get(run_a(policy, k_a))
     rollouts_b, targets = jax.device_get(run_b(policy, k_b))
     results = {"protocol_a": summarize_a(rollouts_a, cfg), "protocol_b": summarize_b(rollouts_b),
-               "seed": cfg.seed, "checkpoint": str(run_dir / "checkpoints" / str(int(state.cycle))),
+               "seed": cfg.seed, "eval_config": to_dict(cfg), "checkpoint": str(run_dir / "checkpoints" / str(int(state.cycle))),
                "seconds": round(time.perf_counter() - t, 1)}
     out = run_dir / "eval"
     out.mkdir(parents=True, exist_ok=True)
@@ -185,5 +222,5 @@ def evaluate_run(run_dir: str | Path, eval_config: EvalConfig | None = None, *,
         from lazyq_jax import plots
 
         plots.write_all(run_dir / "figures", trainer.value_fn(state), results, rollouts_b, targets,
-                        config)
+                        config, cfg)
     return results

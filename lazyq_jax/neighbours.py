@@ -70,7 +70,8 @@ class Neighbours:
     """Result of a neighbour search for ``Q`` queries.
 
     * ``idx``: int32 ``[Q, k]``: distinct indices into the data, uniform without
-      replacement from ``B_level`` (order is random).
+      replacement from ``B_level`` (a uniform k-subset; the column order is not a
+      uniform random order, so take all k columns, not a prefix).
     * ``level``: int32 ``[Q]``: growths applied (radii ``radius * growth**level``).
     * ``count``: int32 ``[Q]``: ``|B_level|``.
 
@@ -377,9 +378,15 @@ def _search(index: GridIndex, key, qx, qy, qg, *, lo: int, hi: int, n_items: int
 
 @partial(jax.jit, static_argnames=("lo", "hi", "n_items", "steps"), donate_argnums=(5,))
 def _pass(index: GridIndex, key, qs, qg, sub, out, *, lo, hi, n_items, steps):
-    """One :func:`_search` on the queries ``sub`` (indices), written into ``out = (idx, level, count)``."""
-    res = _search(index, key, qs[sub, 0], qs[sub, 1], qg[sub], lo=lo, hi=hi, n_items=n_items, steps=steps)
-    return tuple(o.at[sub].set(r) for o, r in zip(out, res))
+    """One :func:`_search` on the queries ``sub`` (indices), written into ``out = (idx, level, count)``.
+
+    Padding entries of ``sub`` are ``Q`` (out of range): they search a copy of query
+    ``Q - 1`` and their results are dropped, so every output row has one writer.
+    """
+    read = jnp.minimum(sub, qs.shape[0] - 1)
+    res = _search(index, key, qs[read, 0], qs[read, 1], qg[read], lo=lo, hi=hi, n_items=n_items,
+                  steps=steps)
+    return tuple(o.at[sub].set(r, mode="drop") for o, r in zip(out, res))
 
 
 @partial(jax.jit, static_argnames=("level",))
@@ -460,12 +467,13 @@ def search_all(index: GridIndex, key, query_s, query_g) -> Neighbours:
     pending, lo, hi, p = order, 0, 0, 0
     qs_j, qg_j = jnp.asarray(qs), jnp.asarray(qg)
     while pending.size:
-        # Later passes: pad the (few) pending queries to a bucketed size by repeating the last
-        # one (identical duplicates write identical results).
+        # Later passes: pad the (few) pending queries to a bucketed size with the
+        # out-of-range index n_q, whose results _pass drops.
         sub = pending if p == 0 else np.concatenate(
-            [pending, np.full(_bucket(pending.size) - pending.size, pending[-1], np.int32)])
+            [pending, np.full(_bucket(pending.size) - pending.size, n_q, np.int32)])
         sub_j = jnp.asarray(sub)
-        n_it = np.asarray(_items_per_query(index, qs_j[sub_j, 0], qs_j[sub_j, 1], qg_j[sub_j], level=hi))
+        read = jnp.minimum(sub_j, n_q - 1)
+        n_it = np.asarray(_items_per_query(index, qs_j[read, 0], qs_j[read, 1], qg_j[read], level=hi))
         out = _pass(index, jax.random.fold_in(key, p), qs_j, qg_j, sub_j, out, lo=lo, hi=hi,
                     n_items=_bucket(n_it.sum()), steps=int(n_it.max()).bit_length())
         pending = pending[np.asarray(out[1])[pending] < 0]

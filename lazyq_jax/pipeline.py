@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from pathlib import Path
 
@@ -15,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from lazyq_jax.checkpoint import load_checkpoint, save_checkpoint
+from lazyq_jax.checkpoint import latest_cycle, load_checkpoint, save_checkpoint
 from lazyq_jax.config import Config, to_dict
 from lazyq_jax.data import DatasetError, collect, dataset_summary, load_dataset, save_dataset
 from lazyq_jax.neighbours import find_neighbours
@@ -23,10 +24,21 @@ from lazyq_jax.train import make_train_for
 from lazyq_jax.types import Transitions
 
 
+# Tags that give every random purpose of a run its own key stream.  (fold_in is used
+# rather than split: split(k, n)[i] == fold_in(k, i) with partitionable threefry, and
+# the consumers fold in small counters of their own.)
+_KEY_TAGS = {"collect": 0x636F6C6C, "neighbours": 0x6E656967, "train": 0x74726169,
+             "resample": 0x72657361, "eval": 0x6576616C}
+
+
+def purpose_key(seed: int, purpose: str) -> jax.Array:
+    """The raw PRNG key of one purpose ('collect', 'neighbours', 'train', 'resample', 'eval')."""
+    return jax.random.fold_in(jax.random.PRNGKey(seed), _KEY_TAGS[purpose])
+
+
 def run_keys(config: Config) -> dict[str, jax.Array]:
     """Independent raw PRNG keys of a run, all derived from ``config.seed``."""
-    k_collect, k_neighbours, k_train = jax.random.split(jax.random.PRNGKey(config.seed), 3)
-    return {"collect": k_collect, "neighbours": k_neighbours, "train": k_train}
+    return {name: purpose_key(config.seed, name) for name in ("collect", "neighbours", "train")}
 
 
 def _log(msg: str) -> None:
@@ -62,24 +74,41 @@ def neighbours_for(config: Config, data: Transitions, cycle: int | None = None) 
     """
     key = run_keys(config)["neighbours"]
     if cycle is not None:
-        key = jax.random.fold_in(key, cycle)
+        key = jax.random.fold_in(purpose_key(config.seed, "resample"), cycle)
     nc = config.neighbours
     found = find_neighbours(key, data.s, data.g, data.s, data.g, k=nc.k, radius_s=nc.radius_s,
                             radius_g=nc.radius_g, growth=nc.growth)
     return found.idx
 
 
-def fit(config: Config, run_dir: str | Path, *, resume: bool = False, progress: bool = True):
+class RunDirError(ValueError):
+    """The run directory holds another run that this call would overwrite."""
+
+
+def fit(config: Config, run_dir: str | Path, *, resume: bool = False, overwrite: bool = False,
+        progress: bool = True):
     """Collect (or reuse) the dataset, find neighbourhoods, train with a checkpoint per cycle.
 
-    ``resume=True`` continues from the newest checkpoint in ``run_dir`` and ends with
-    the same parameters as an uninterrupted run with the same config.
+    ``resume=True`` continues from the newest checkpoint in ``run_dir`` (or starts
+    afresh if there is none) and ends with the same parameters as an uninterrupted
+    run with the same config; a checkpoint of an incompatible config is refused
+    before anything in ``run_dir`` is touched.  Without ``resume``, existing
+    checkpoints are refused unless ``overwrite=True`` (which deletes them).
     Returns ``(state, trainer, data)``.
     """
     run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
     ckpt_dir = run_dir / "checkpoints"
     metrics_path = run_dir / "metrics.jsonl"
+    restored = None
+    if latest_cycle(ckpt_dir) is not None:
+        if resume:
+            restored, _ = load_checkpoint(ckpt_dir, expect=config)  # refuses a mismatch early
+        elif overwrite:
+            shutil.rmtree(ckpt_dir)
+        else:
+            raise RunDirError(f"{run_dir} already holds checkpoints of a run; continue it with "
+                              "--resume, replace it with --overwrite, or pick another --run-dir")
+    run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.json").write_text(json.dumps(to_dict(config), indent=1))
     timings: dict[str, float] = {}
 
@@ -88,15 +117,17 @@ def fit(config: Config, run_dir: str | Path, *, resume: bool = False, progress: 
     timings["dataset_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    idx = jax.block_until_ready(neighbours_for(config, data))
+    first = 0 if restored is None else int(restored.cycle)
+    idx = jax.block_until_ready(neighbours_for(
+        config, data, first if config.train.resample_neighbours and first > 0 else None))
     timings["neighbours_s"] = time.perf_counter() - t
     _log(f"neighbours: {idx.shape[0]:,} queries x k={idx.shape[1]} ({timings['neighbours_s']:.1f} s)")
 
     tc = config.train
     bar = tqdm(total=tc.epochs, unit="epoch", disable=not progress, leave=False)
     trainer = make_train_for(config, progress=(lambda e: bar.update(1)) if progress else None)
-    if resume and (ckpt_dir.exists()):
-        state, _ = load_checkpoint(ckpt_dir, expect=config)
+    if restored is not None:
+        state = restored
         _log(f"resume: from cycle {int(state.cycle)} of {tc.cycles}")
         kept = [line for line in metrics_path.read_text().splitlines()
                 if json.loads(line)["cycle"] <= int(state.cycle)] if metrics_path.exists() else []
@@ -109,7 +140,7 @@ def fit(config: Config, run_dir: str | Path, *, resume: bool = False, progress: 
     t_train = time.perf_counter()
     while int(state.cycle) < tc.cycles:
         cycle = int(state.cycle)
-        if tc.resample_neighbours and cycle > 0:
+        if tc.resample_neighbours and cycle > first:
             idx = neighbours_for(config, data, cycle)
         bar.reset()
         bar.set_description(f"cycle {cycle + 1}/{tc.cycles}")

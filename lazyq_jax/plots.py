@@ -87,7 +87,8 @@ def fig4_outcomes(results: dict, path: Path):
     plt.close(fig)
 
 
-def fig5_trajectories(rollouts, targets, results: dict, config: Config, path: Path, n: int = 10):
+def fig5_trajectories(rollouts, targets, results: dict, config: Config, success_radius: float,
+                      path: Path, n: int = 10):
     """Fig. 5: disk trajectories of the first ``n`` long-horizon rollouts."""
     half = config.collect.push.table_half_size
     disk = np.asarray(rollouts.disk)  # [T + 1, B, 2]
@@ -100,7 +101,7 @@ def fig5_trajectories(rollouts, targets, results: dict, config: Config, path: Pa
         color = COLORS["correct"] if success[i] else COLORS["wrong"]
         ax.plot(path_i[:, 0], path_i[:, 1], color=color, lw=1.6)
         ax.plot(*path_i[0], marker="D", color=color, ms=6)
-        ax.add_patch(plt.Circle(np.asarray(targets)[i], config.eval.success_radius, fill=False,
+        ax.add_patch(plt.Circle(np.asarray(targets)[i], success_radius, fill=False,
                                 color=color, lw=1.5))
     b = results["protocol_b"]
     ax.set_title(f"Long-horizon pushes: {b['successes']}/{b['rollouts']} succeeded "
@@ -112,10 +113,11 @@ def fig5_trajectories(rollouts, targets, results: dict, config: Config, path: Pa
     plt.close(fig)
 
 
-def write_all(out_dir: Path, value_fn, results, rollouts_b, targets, config: Config) -> list[Path]:
+def write_all(out_dir: Path, value_fn, results, rollouts_b, targets, config: Config,
+              eval_config) -> list[Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = [out_dir / "fig3_value.png", out_dir / "fig4_outcomes.png", out_dir / "fig5_long_horizon.png"]
     fig3_value(value_fn, config, paths[0])
     fig4_outcomes(results, paths[1])
-    fig5_trajectories(rollouts_b, targets, results, config, paths[2])
+    fig5_trajectories(rollouts_b, targets, results, config, eval_config.success_radius, paths[2])
     return paths

@@ -29,6 +29,17 @@ def lazy_target(alpha, beta, values, action_length, clip=True):
     return _clip(linear, values, clip)
 
 
+def double_dqn_target(alpha, beta, beta_online, values, action_length, clip=True):
+    """Eq. (13)-(14): the action ``a_opt = c beta_online / ||beta_online||`` chosen by the
+    online network's fit, valued by the target network's fit ``alpha + beta . a_opt``,
+    clipped (``clip=True``) by the largest target-network neighbour value.
+
+    Returns ``(target [...], clip_active [...] bool)``.
+    """
+    linear = alpha + jnp.sum(beta * greedy_action(beta_online, action_length), axis=-1)
+    return _clip(linear, values, clip)
+
+
 def _clip(linear, values, clip):
     if not clip:
         return linear, jnp.zeros(linear.shape, bool)
@@ -90,19 +101,27 @@ def dataset_targets(v_target: ValueFn, data: Transitions, neighbours_idx, *, gam
         raise ValueError(f"neighbours_idx must be [N={data.r.shape[0]}, k], got {idx.shape}")
 
     def fit(v):
-        y = bootstrap_values(data.r, data.done, evaluate_in_batches(v, data.s_next, data.g, batch_size), gamma)
-        y_nb = y[idx]
-        if projection is None:
-            alpha, beta = fit_local_linear(data.a[idx], y_nb)
-        else:
-            alpha, beta = apply_projection(projection, y_nb)
-        return alpha, beta, y_nb
+        return local_fits(v, data, idx, gamma=gamma, projection=projection, batch_size=batch_size)
 
     alpha, beta, y_nb = fit(v_target)
     if v_online is None:
-        linear = alpha + action_length * safe_norm(beta)
+        target, active = lazy_target(alpha, beta, y_nb, action_length, clip)
     else:
         _, beta_o, _ = fit(v_online)
-        linear = alpha + jnp.sum(beta * greedy_action(beta_o, action_length), axis=-1)
-    target, active = _clip(linear, y_nb, clip)
+        target, active = double_dqn_target(alpha, beta, beta_o, y_nb, action_length, clip)
     return target, TargetDiagnostics(clip_active=active, alpha=alpha, beta_norm=safe_norm(beta))
+
+
+def local_fits(v: ValueFn, data: Transitions, neighbours_idx, *, gamma, projection=None,
+               batch_size=65536):
+    """``(alpha [N], beta [N, n_a], y_nb [N, k])``: Eq. (5)-(6) for every transition's
+    neighbourhood with ``y = r + gamma (1 - done) v(s', g)``; ``y_nb = y[neighbours_idx]``."""
+    idx = jnp.asarray(neighbours_idx)
+    y = bootstrap_values(data.r, data.done, evaluate_in_batches(v, data.s_next, data.g, batch_size),
+                         gamma)
+    y_nb = y[idx]
+    if projection is None:
+        alpha, beta = fit_local_linear(data.a[idx], y_nb)
+    else:
+        alpha, beta = apply_projection(projection, y_nb)
+    return alpha, beta, y_nb

@@ -10,7 +10,9 @@
   the action comes from the fit to the *online* network's values, its value from
   the frozen network's fit.
 * ``train(key, data, idx) -> (state, metrics)``: all cycles in one ``lax.scan``
-  (``jit``/``vmap`` it over keys for many seeds at once).
+  (``jit``/``vmap`` it over keys for many seeds at once, without ``progress``).
+  It keeps ``idx`` fixed; ``resample_neighbours`` is honoured by the driver
+  :func:`lazyq_jax.pipeline.fit`, which draws fresh neighbourhoods between cycles.
 
 The host-side driver with checkpoints, progress and resume is :func:`lazyq_jax.pipeline.fit`.
 """
@@ -26,7 +28,8 @@ from flax import struct
 
 from lazyq_jax.config import Config, TrainConfig
 from lazyq_jax.networks import ValueNetwork
-from lazyq_jax.targets import dataset_targets
+from lazyq_jax.local_model import safe_norm
+from lazyq_jax.targets import double_dqn_target, lazy_target, local_fits
 from lazyq_jax.types import Transitions
 
 # Probe points (s, g) whose values are logged every cycle: finger behind the disk for
@@ -72,6 +75,8 @@ def make_train(config: TrainConfig, action_length: float, *, state_scale: float 
     optimizer = optax.adam(config.learning_rate)
 
     def init(key: jax.Array) -> TrainState:
+        if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
+            key = jax.random.key_data(key)
         key = jnp.asarray(key, jnp.uint32)
         key, k_init = jax.random.split(key)
         variables = network.init(k_init, jnp.zeros((1, 2)), jnp.zeros((1,)), train=False)
@@ -83,11 +88,9 @@ def make_train(config: TrainConfig, action_length: float, *, state_scale: float 
         variables = {"params": state.params, "batch_stats": state.batch_stats}
         return lambda s, g: network.apply(variables, s, g, train=False)
 
-    def targets(frozen: TrainState, online: TrainState | None, data: Transitions, idx: jax.Array):
-        return dataset_targets(
-            value_fn(frozen), data, idx, gamma=config.gamma, action_length=action_length,
-            clip=config.clip, v_online=None if online is None else value_fn(online),
-            batch_size=config.target_batch_size)
+    def fits(state: TrainState, data: Transitions, idx: jax.Array):
+        return local_fits(value_fn(state), data, idx, gamma=config.gamma,
+                          batch_size=config.target_batch_size)
 
     def loss_fn(params, batch_stats, s, g, y):
         v, updates = network.apply({"params": params, "batch_stats": batch_stats}, s, g,
@@ -97,7 +100,7 @@ def make_train(config: TrainConfig, action_length: float, *, state_scale: float 
     def epoch(state: TrainState, data: Transitions, y: jax.Array, key: jax.Array):
         n = data.r.shape[0]
         batch = min(config.batch_size, n)
-        n_batches = n // batch  # the shuffled remainder (< batch rows) waits for the next epoch
+        n_batches = n // batch  # the shuffled remainder (< batch rows) is left out of this epoch
         perm = jax.random.permutation(key, n)
 
         def minibatch(carry, i):
@@ -114,32 +117,36 @@ def make_train(config: TrainConfig, action_length: float, *, state_scale: float 
         return state, jnp.mean(losses)
 
     def run_cycle(state: TrainState, data: Transitions, idx: jax.Array):
-        frozen = state
         key, k_epochs = jax.random.split(state.key)
-        y, diag = targets(frozen, None, data, idx)
+        # The target network: the parameters frozen at the start of the cycle (Eq. 11-12).
+        alpha, beta, y_nb = fits(state, data, idx)
+        dqn = lazy_target(alpha, beta, y_nb, action_length, config.clip)
 
         def one_epoch(state, xs):
             e, k = xs
-            y_e = y
-            if config.double_dqn:
-                y_e, _ = targets(frozen, state, data, idx)
-            state, loss = epoch(state, data, y_e, k)
+            y, active = dqn
+            if config.double_dqn:  # Eq. (13)-(14): the online network picks the action
+                _, beta_online, _ = fits(state, data, idx)
+                y, active = double_dqn_target(alpha, beta, beta_online, y_nb, action_length,
+                                              config.clip)
+            state, loss = epoch(state, data, y, k)
             if progress is not None:
                 jax.debug.callback(progress, e, ordered=True)
-            return state, loss
+            stats = (jnp.mean(y), jnp.std(y), jnp.mean(active.astype(jnp.float32)))
+            return state, (loss, stats)
 
         epochs = jnp.arange(config.epochs)
-        state, losses = jax.lax.scan(one_epoch, state,
-                                     (epochs, jax.random.split(k_epochs, config.epochs)))
+        state, (losses, (y_mean, y_std, clip_frac)) = jax.lax.scan(
+            one_epoch, state, (epochs, jax.random.split(k_epochs, config.epochs)))
         state = state.replace(key=key, cycle=state.cycle + 1)
         probes = value_fn(state)(jnp.asarray(PROBE_S, jnp.float32), jnp.asarray(PROBE_G, jnp.float32))
-        metrics = {
+        metrics = {  # targets: those of the last epoch (all epochs' for DQN are the same)
             "loss": losses[-1],
             "loss_first_epoch": losses[0],
-            "target_mean": jnp.mean(y),
-            "target_std": jnp.std(y),
-            "clip_fraction": diag.clip_fraction,
-            "beta_norm_mean": jnp.mean(diag.beta_norm),
+            "target_mean": y_mean[-1],
+            "target_std": y_std[-1],
+            "clip_fraction": clip_frac[-1],
+            "beta_norm_mean": jnp.mean(safe_norm(beta)),
             "probe_values": probes,
         }
         return state, metrics

@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 
 from conftest import PUSH
-from lazyq_jax.evaluate import EvalError, evaluate_run
+from lazyq_jax.config import EvalConfig
+from lazyq_jax.evaluate import (CORRECT, NOT_PUSHED, WRONG, EvalError, evaluate_run, protocol_a,
+                                protocol_b, summarize_a, summarize_b)
 from lazyq_jax.policy import lazy_policy, make_lazy_policy
 
 
@@ -57,3 +59,49 @@ def test_evaluation_refuses_a_run_without_checkpoint(tmp_path):
     out = subprocess.run([sys.executable, "-m", "lazyq_jax", "evaluate", "--run-dir", str(tmp_path)],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode != 0 and "no checkpoint" in out.stderr
+
+
+def scripted(fn):
+    """A stand-in policy ``act(key, s, g)`` with a fixed rule (always 'found')."""
+    return lambda key, s, g: (fn(s, g), jnp.ones(s.shape[0], bool))
+
+
+A_CFG = EvalConfig(n_directions=8, episodes_per_direction=4, max_steps=12, start_range=0.6)
+
+
+def test_protocol_a_starts_behind_and_classifies_pushes(env):
+    toward_disk = scripted(lambda s, g: -s)
+    r = jax.device_get(jax.jit(lambda k: protocol_a(env, toward_disk, k, A_CFG))(jax.random.PRNGKey(0)))
+    goals = np.repeat(np.arange(8) * np.pi / 4, 4)
+    direction = np.stack([np.cos(goals), np.sin(goals)], 1)
+    start = r.finger[0]
+    assert np.all(np.sum(start * direction, 1) < 0)  # behind the disk w.r.t. the goal
+    assert np.all(np.linalg.norm(start, axis=1) > 0.31) and np.all(np.abs(start) <= 0.6)
+    assert np.all(r.outcome != NOT_PUSHED)  # heading for the centre always hits the disk
+    # Independent classification from the recorded trajectory: the disk only moves
+    # in the episode's last (frozen) step, by the push that ended it.
+    delta = r.disk[-1] - r.disk[0]
+    cos = np.sum(delta * direction, 1) / np.linalg.norm(delta, axis=1)
+    np.testing.assert_array_equal(r.outcome, np.where(cos >= 0.9, CORRECT, WRONG))
+    assert {CORRECT, WRONG} <= set(r.outcome.tolist())  # both classes occur
+    summary = summarize_a(r, A_CFG)
+    assert sum(row["correct"] for row in summary["per_goal"]) == int(np.sum(r.outcome == CORRECT))
+
+
+def test_a_policy_that_does_not_move_never_pushes(env):
+    still = scripted(lambda s, g: jnp.zeros_like(s))
+    r = jax.jit(lambda k: protocol_a(env, still, k, A_CFG))(jax.random.PRNGKey(1))
+    assert np.all(np.asarray(r.outcome) == NOT_PUSHED)
+    assert np.all(np.asarray(r.steps) == A_CFG.max_steps)
+
+
+def test_protocol_b_success_at_start_and_out_of_time(env):
+    still = scripted(lambda s, g: jnp.zeros_like(s))
+    everywhere = EvalConfig(long_rollouts=6, long_max_steps=5, success_radius=5.0)
+    r, _ = jax.jit(lambda k: protocol_b(env, still, k, everywhere, 0.75))(jax.random.PRNGKey(2))
+    assert np.all(np.asarray(r.outcome) == CORRECT) and np.all(np.asarray(r.steps) == 0)
+    tight = EvalConfig(long_rollouts=6, long_max_steps=5, success_radius=1e-4)
+    r, target = jax.jit(lambda k: protocol_b(env, still, k, tight, 0.75))(jax.random.PRNGKey(2))
+    assert np.all(np.asarray(r.outcome) == NOT_PUSHED) and np.all(np.asarray(r.steps) == 5)
+    summary = summarize_b(r)
+    assert summary["out_of_time"] == 6 and summary["successes"] == 0

@@ -13,7 +13,7 @@ import pytest
 from lazyq_jax.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from lazyq_jax.config import TrainConfig, override
 from lazyq_jax.neighbours import find_neighbours
-from lazyq_jax.pipeline import fit, neighbours_for, prepare_dataset
+from lazyq_jax.pipeline import RunDirError, fit, neighbours_for, prepare_dataset
 from lazyq_jax.train import make_train, make_train_for
 from lazyq_jax.types import Transitions
 
@@ -48,10 +48,14 @@ def test_targets_respect_the_clip(push_run):
     y_clipped, diag = dataset_targets(v, data, idx, gamma=0.9, action_length=0.1, clip=True)
     y_free, _ = dataset_targets(v, data, idx, gamma=0.9, action_length=0.1, clip=False)
     values = data.r + 0.9 * (1 - data.done) * v(data.s_next, data.g)
-    bound = jnp.max(values[idx], axis=1)
-    assert np.all(np.asarray(y_clipped) <= np.asarray(bound) + 1e-5)
-    assert np.all(np.asarray(y_clipped) <= np.asarray(y_free) + 1e-6)
-    assert 0 < float(diag.clip_fraction) < 1
+    bound = np.asarray(jnp.max(values[idx], axis=1))
+    y_clipped, y_free, active = map(np.asarray, (y_clipped, y_free, diag.clip_active))
+    assert np.all(y_clipped <= bound + 1e-5)
+    # where the clip is active the target is the neighbour bound, elsewhere Eq. (7)'s value
+    np.testing.assert_allclose(y_clipped[active], bound[active], atol=1e-5)
+    np.testing.assert_allclose(y_clipped[~active], y_free[~active], atol=1e-6)
+    assert np.all(y_free[active] > bound[active])
+    assert 0 < active.mean() < 1
 
 
 def test_dqn_and_double_dqn_both_run_and_differ(push_run):
@@ -93,16 +97,31 @@ def test_bad_checkpoints_give_clear_errors(tmp_path, push_run):
         load_checkpoint(tmp_path / "ck")
 
 
-def test_resume_equals_uninterrupted_run(tmp_path):
-    full, _, _ = fit(TINY, tmp_path / "full", progress=False)
-    first, _, _ = fit(override(TINY, ["train.cycles=2"]), tmp_path / "cut", progress=False)
+@pytest.mark.parametrize("flags", [[], ["train.resample_neighbours=true", "train.double_dqn=true"]])
+def test_resume_equals_uninterrupted_run(tmp_path, flags):
+    config = override(TINY, flags)
+    full, _, _ = fit(config, tmp_path / "full", progress=False)
+    first, _, _ = fit(override(config, ["train.cycles=2"]), tmp_path / "cut", progress=False)
     assert int(first.cycle) == 2
-    resumed, _, _ = fit(TINY, tmp_path / "cut", resume=True, progress=False)
+    resumed, _, _ = fit(config, tmp_path / "cut", resume=True, progress=False)
     assert int(resumed.cycle) == 3
-    assert tree_equal(resumed.params, full.params)
-    assert tree_equal(resumed.batch_stats, full.batch_stats)
+    assert tree_equal(resumed, full)  # params, batch stats, optimiser state, key, cycle
     lines = (tmp_path / "cut" / "metrics.jsonl").read_text().splitlines()
     assert [json.loads(line)["cycle"] for line in lines] == [1, 2, 3]
+
+
+def test_run_directory_is_not_overwritten_by_accident(tmp_path):
+    small = override(TINY, ["train.cycles=1"])
+    fit(small, tmp_path, progress=False)
+    dataset = (tmp_path / "dataset.npz").read_bytes()
+    with pytest.raises(RunDirError, match="--resume"):
+        fit(small, tmp_path, progress=False)
+    # a resume with an incompatible config is refused before anything is rewritten
+    with pytest.raises(CheckpointError, match="collect config or seed differ"):
+        fit(override(small, ["collect.n_goals=5"]), tmp_path, resume=True, progress=False)
+    assert (tmp_path / "dataset.npz").read_bytes() == dataset
+    state, _, _ = fit(small, tmp_path, overwrite=True, progress=False)
+    assert int(state.cycle) == 1
 
 
 def test_train_is_task_agnostic():
