@@ -31,6 +31,7 @@ bench: $(STAMP)
 	$(PY) experiments/bench_collect.py
 	$(PY) experiments/bench_neighbours.py
 	$(PY) experiments/bench_lstsq.py
+	$(PY) experiments/bench_train.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info
