@@ -13,9 +13,7 @@ import jax
 import numpy as np
 
 from lazyq_jax.env import PushEnv
-from lazyq_jax.evaluate import NOT_PUSHED, load_run, policy_act, protocol_a
-from lazyq_jax.pipeline import purpose_key
-from lazyq_jax.policy import make_lazy_policy
+from lazyq_jax.evaluate import NOT_PUSHED, eval_keys, load_run, policy_act, protocol_a, run_policy
 
 
 def main():
@@ -23,12 +21,9 @@ def main():
     ap.add_argument("--run-dir", default="runs/paper")
     args = ap.parse_args()
     config, state, trainer, data = load_run(args.run_dir)
-    cfg, nc = config.eval, config.neighbours
-    policy = make_lazy_policy(trainer.value_fn(state), data, gamma=config.train.gamma,
-                              action_length=config.collect.push.action_length, k=nc.k,
-                              radius_s=nc.radius_s, radius_g=nc.radius_g, growth=nc.growth,
-                              max_level=cfg.max_level)
-    k_a, _ = jax.random.split(purpose_key(cfg.seed, "eval"))  # as evaluate_run does
+    cfg = config.eval
+    policy = run_policy(config, trainer.value_fn(state), data, cfg.max_level)
+    k_a, _ = eval_keys(cfg)  # as evaluate_run does
     env = PushEnv(config.collect.push)
     r = jax.device_get(jax.jit(lambda p, k: protocol_a(env, policy_act(p), k, cfg))(policy, k_a))
     stuck = r.outcome == NOT_PUSHED

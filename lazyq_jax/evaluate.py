@@ -192,6 +192,21 @@ def load_run(run_dir: Path):
     return config, state, make_train_for(config), data
 
 
+def run_policy(config, value_fn, data, max_level: int) -> LazyPolicy:
+    """The lazy policy of a run: its dataset, neighbourhood settings, gamma and trained V."""
+    nc = config.neighbours
+    return make_lazy_policy(value_fn, data, gamma=config.train.gamma,
+                            action_length=config.collect.push.action_length, k=nc.k,
+                            radius_s=nc.radius_s, radius_g=nc.radius_g, growth=nc.growth,
+                            max_level=max_level)
+
+
+def eval_keys(cfg: EvalConfig) -> tuple[jax.Array, jax.Array]:
+    """The keys of protocols A and B for ``cfg.seed``."""
+    k_a, k_b = jax.random.split(purpose_key(cfg.seed, "eval"))
+    return k_a, k_b
+
+
 def evaluate_run(run_dir: str | Path, eval_config: EvalConfig | None = None, *,
                  figures: bool = True) -> dict:
     """Reload a run's checkpoint and dataset, run protocols A and B, write
@@ -201,12 +216,8 @@ def evaluate_run(run_dir: str | Path, eval_config: EvalConfig | None = None, *,
     cfg = eval_config or config.eval
     t = time.perf_counter()
     env = PushEnv(config.collect.push)  # float32 physics here (see the README's design notes)
-    nc = config.neighbours
-    policy = make_lazy_policy(trainer.value_fn(state), data, gamma=config.train.gamma,
-                              action_length=config.collect.push.action_length, k=nc.k,
-                              radius_s=nc.radius_s, radius_g=nc.radius_g, growth=nc.growth,
-                              max_level=cfg.max_level)
-    k_a, k_b = jax.random.split(purpose_key(cfg.seed, "eval"))
+    policy = run_policy(config, trainer.value_fn(state), data, cfg.max_level)
+    k_a, k_b = eval_keys(cfg)
     run_a = jax.jit(lambda p, k: protocol_a(env, policy_act(p), k, cfg))
     run_b = jax.jit(lambda p, k: protocol_b(env, policy_act(p), k, cfg,
                                             config.collect.push.table_half_size))
