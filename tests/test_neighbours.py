@@ -93,12 +93,24 @@ def test_query_inside_scan_of_a_rollout(wrap_data):
     s, g, _, _ = wrap_data
     index = build_index(s, g, k=5, max_level=6)
 
-    def step(carry, key):
-        nb = query_neighbours(index, key, carry, jnp.zeros(carry.shape[0]))
-        return carry + 0.01, nb.level
+    goals = jnp.asarray(g[:4])  # the data's goals lie near +-pi
 
-    _, levels = jax.jit(lambda k: jax.lax.scan(step, jnp.zeros((4, 2)), jax.random.split(k, 3)))(jax.random.key(0))
+    def step(carry, key):
+        nb = query_neighbours(index, key, carry, goals)
+        return carry + 0.01, (nb.idx, nb.level)
+
+    keys = jax.random.split(jax.random.key(0), 3)
+    start = jnp.asarray(s[:4])
+    _, (idx, levels) = jax.jit(lambda ks: jax.lax.scan(step, start, ks))(keys)
     chex.assert_shape(levels, (3, 4))
+    # the same queries outside scan/jit give the same (exact) neighbourhoods
+    for t in range(3):
+        q = np.asarray(start) + 0.01 * t
+        nb = query_neighbours(index, keys[t], jnp.asarray(q), goals)
+        np.testing.assert_array_equal(np.asarray(nb.idx), np.asarray(idx[t]))
+        np.testing.assert_array_equal(np.asarray(nb.level), np.asarray(levels[t]))
+        assert np.all(np.asarray(nb.level) >= 0)
+        assert_exact(nb, s, g, q.astype(np.float32), g[:4], 5)
 
 
 def test_level_beyond_max_level_is_reported_not_dropped(wrap_data):
