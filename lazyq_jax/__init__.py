@@ -23,7 +23,7 @@ from lazyq_jax.neighbours import (GridIndex, Neighbours, build_index, check_foun
 from lazyq_jax.networks import ValueNetwork
 from lazyq_jax.pipeline import fit
 from lazyq_jax.policy import LazyPolicy, lazy_policy, make_lazy_policy
-from lazyq_jax.targets import (TargetDiagnostics, bootstrap_values, dataset_targets,
+from lazyq_jax.targets import (TargetDiagnostics, bootstrap_table, bootstrap_values, dataset_targets,
                                double_dqn_target, evaluate_in_batches, lazy_target, local_fits)
 from lazyq_jax.train import TrainState, make_train, make_train_for
 from lazyq_jax.types import Transitions
@@ -34,7 +34,7 @@ __all__ = [
     "CheckpointError", "CollectConfig", "Config", "ConfigError", "DatasetError", "EvalConfig",
     "GridIndex", "LazyPolicy", "NeighbourConfig", "Neighbours", "PushConfig", "PushEnv",
     "PushState", "TargetDiagnostics", "TrainConfig", "TrainState", "Transitions", "ValueNetwork",
-    "apply_projection", "bootstrap_values", "build_index", "check_found", "collect",
+    "apply_projection", "bootstrap_table", "bootstrap_values", "build_index", "check_found", "collect",
     "dataset_summary", "dataset_targets", "double_dqn_target", "local_fits", "evaluate_in_batches", "evaluate_run", "find_neighbours",
     "fit", "fit_local_linear", "greedy_action", "lazy_policy", "lazy_target", "load_checkpoint",
     "load_dataset", "make_lazy_policy", "make_train", "make_train_for", "override", "precompute_projection",

@@ -11,7 +11,11 @@ import sys
 import time
 from pathlib import Path
 
+from lazyq_jax.checkpoint import CheckpointError, load_checkpoint
 from lazyq_jax.config import PRESETS, Config, ConfigError, override, preset, to_dict
+from lazyq_jax.data import DatasetError
+from lazyq_jax.evaluate import EvalError, evaluate_run
+from lazyq_jax.pipeline import RunDirError, fit, prepare_dataset
 
 
 def _config(args) -> Config:
@@ -28,8 +32,6 @@ def _add_common(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_collect(args) -> None:
-    from lazyq_jax.pipeline import prepare_dataset
-
     config = _config(args)
     run_dir = args.run_dir or Path("runs") / args.preset
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -40,8 +42,6 @@ def cmd_collect(args) -> None:
 
 
 def cmd_train(args) -> None:
-    from lazyq_jax.pipeline import fit
-
     config = _config(args)
     run_dir = args.run_dir or Path("runs") / args.preset
     t = time.perf_counter()
@@ -54,9 +54,6 @@ def cmd_train(args) -> None:
 
 
 def _evaluate(run_dir: Path, assignments: list[str], figures: bool = True) -> None:
-    from lazyq_jax.checkpoint import load_checkpoint
-    from lazyq_jax.evaluate import evaluate_run
-
     bad = [a for a in assignments if not a.strip().startswith("eval.")]
     if bad:
         raise ConfigError(f"evaluate takes only eval.* overrides (the run's own config is used), "
@@ -104,11 +101,6 @@ def main(argv: list[str] | None = None) -> int:
     _add_common(p)
     p.set_defaults(func=lambda a: print(json.dumps(to_dict(_config(a)), indent=1)))
     args = parser.parse_args(argv)
-    from lazyq_jax.checkpoint import CheckpointError
-    from lazyq_jax.data import DatasetError
-    from lazyq_jax.evaluate import EvalError
-    from lazyq_jax.pipeline import RunDirError
-
     try:
         args.func(args)
     except ConfigError as e:

@@ -25,6 +25,13 @@ def _is_int(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
+def _counts(obj: Any, *names: str, minimum: int = 1) -> None:
+    for name in names:
+        value = getattr(obj, name)
+        _check(_is_int(value) and value >= minimum,
+               f"{type(obj).__name__}.{name} must be an integer >= {minimum}, got {value!r}")
+
+
 def _positive(obj: Any, *names: str) -> None:
     for name in names:
         value = getattr(obj, name)
@@ -98,12 +105,8 @@ class PushConfig:
                f"PushConfig.anisotropy must be a number in [0, {limit:g}] (explicit drag "
                f"integration is unstable above that for this disk_mass and timestep), "
                f"got {self.anisotropy!r}")
-        for name in ("move_substeps", "solver_iterations", "ls_iterations"):
-            value = getattr(self, name)
-            _check(_is_int(value) and value >= 1,
-                   f"PushConfig.{name} must be an integer >= 1, got {value!r}")
-        _check(_is_int(self.settle_substeps) and self.settle_substeps >= 0,
-               f"PushConfig.settle_substeps must be an integer >= 0, got {self.settle_substeps!r}")
+        _counts(self, "move_substeps", "solver_iterations", "ls_iterations")
+        _counts(self, "settle_substeps", minimum=0)
         _check(-1.0 < self.cos_threshold < 1.0,
                f"PushConfig.cos_threshold must lie in (-1, 1), got {self.cos_threshold!r}")
         _check(self.contact_timeconst >= 2 * self.timestep,
@@ -138,10 +141,7 @@ class CollectConfig:
     chunk_size: int = 2048
 
     def __post_init__(self) -> None:
-        for name in ("n_starts", "moves_per_start", "n_goals", "chunk_size"):
-            value = getattr(self, name)
-            _check(_is_int(value) and value >= 1,
-                   f"CollectConfig.{name} must be an integer >= 1, got {value!r}")
+        _counts(self, "n_starts", "moves_per_start", "n_goals", "chunk_size")
         _positive(self, "start_range")
         _check(self.start_range > self.push.contact_distance,
                f"CollectConfig.start_range={self.start_range} must exceed the finger-disk contact "
@@ -159,8 +159,7 @@ class NeighbourConfig:
     growth: float = 2 ** (1 / 3)
 
     def __post_init__(self) -> None:
-        _check(_is_int(self.k) and self.k >= 1,
-               f"NeighbourConfig.k must be an integer >= 1, got {self.k!r}")
+        _counts(self, "k")
         _positive(self, "radius_s", "radius_g")
         _check(self.growth > 1, f"NeighbourConfig.growth must be > 1, got {self.growth!r}")
 
@@ -190,10 +189,7 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         _check(0.0 <= self.gamma < 1.0, f"TrainConfig.gamma must lie in [0, 1), got {self.gamma!r}")
-        for name in ("cycles", "epochs", "batch_size", "width", "target_batch_size"):
-            value = getattr(self, name)
-            _check(_is_int(value) and value >= 1,
-                   f"TrainConfig.{name} must be an integer >= 1, got {value!r}")
+        _counts(self, "cycles", "epochs", "batch_size", "width", "target_batch_size")
         _check(_is_int(self.depth) and self.depth >= 2,
                f"TrainConfig.depth (number of Dense layers) must be an integer >= 2, got {self.depth!r}")
         _positive(self, "learning_rate")
@@ -232,15 +228,11 @@ class EvalConfig:
     max_level: int = 5
 
     def __post_init__(self) -> None:
-        for name in ("n_directions", "episodes_per_direction", "max_steps", "long_rollouts",
-                     "long_max_steps"):
-            value = getattr(self, name)
-            _check(_is_int(value) and value >= 1,
-                   f"EvalConfig.{name} must be an integer >= 1, got {value!r}")
+        _counts(self, "n_directions", "episodes_per_direction", "max_steps", "long_rollouts",
+                "long_max_steps")
         _check(_is_int(self.seed) and self.seed >= 0,
                f"EvalConfig.seed must be an integer >= 0, got {self.seed!r}")
-        _check(_is_int(self.max_level) and self.max_level >= 0,
-               f"EvalConfig.max_level must be an integer >= 0, got {self.max_level!r}")
+        _counts(self, "max_level", minimum=0)
         _positive(self, "start_range", "long_range", "long_finger_box", "success_radius")
 
 

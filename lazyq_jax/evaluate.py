@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lazyq_jax.checkpoint import load_checkpoint
+from lazyq_jax.checkpoint import CheckpointError, load_checkpoint
 from lazyq_jax.config import EvalConfig, to_dict
 from lazyq_jax.data import load_dataset
 from lazyq_jax.env import PushEnv, PushState, disk_moved, sample_outside_disk
@@ -178,8 +178,6 @@ class EvalError(ValueError):
 
 def load_run(run_dir: Path):
     """``(config, state, trainer, data)`` of a finished run; nothing is retrained."""
-    from lazyq_jax.checkpoint import CheckpointError
-
     run_dir = Path(run_dir)
     try:
         state, config = load_checkpoint(run_dir / "checkpoints")

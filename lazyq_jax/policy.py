@@ -9,7 +9,7 @@ import jax.numpy as jnp
 
 from lazyq_jax.local_model import fit_local_linear, greedy_action
 from lazyq_jax.neighbours import GridIndex, build_index, query_neighbours
-from lazyq_jax.targets import bootstrap_values, evaluate_in_batches
+from lazyq_jax.targets import bootstrap_table
 from lazyq_jax.types import Transitions
 
 
@@ -20,13 +20,6 @@ class LazyPolicy(NamedTuple):
     actions: jax.Array  # [N, n_a] the dataset's actions a_j
     values: jax.Array  # [N] y_j = r_j + gamma (1 - done_j) V(s'_j, g_j), from the trained V
     action_length: float
-
-
-def bootstrap_table(value_fn: Callable, data: Transitions, gamma: float,
-                    batch_size: int = 65536) -> jax.Array:
-    """``y_j = r_j + gamma (1 - done_j) V(s'_j, g_j)`` for every row (Eq. 6's targets)."""
-    v_next = evaluate_in_batches(value_fn, data.s_next, data.g, batch_size)
-    return bootstrap_values(data.r, data.done, v_next, gamma)
 
 
 def make_lazy_policy(value_fn: Callable, data: Transitions, *, gamma: float, action_length: float,

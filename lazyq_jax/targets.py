@@ -112,14 +112,19 @@ def dataset_targets(v_target: ValueFn, data: Transitions, neighbours_idx, *, gam
     return target, TargetDiagnostics(clip_active=active, alpha=alpha, beta_norm=safe_norm(beta))
 
 
+def bootstrap_table(v: ValueFn, data: Transitions, gamma, batch_size=65536):
+    """``y_j = r_j + gamma (1 - done_j) v(s'_j, g_j)`` for every transition (Eq. 6's bracket),
+    with ``v`` evaluated in chunks of ``batch_size``."""
+    v_next = evaluate_in_batches(v, data.s_next, data.g, batch_size)
+    return bootstrap_values(data.r, data.done, v_next, gamma)
+
+
 def local_fits(v: ValueFn, data: Transitions, neighbours_idx, *, gamma, projection=None,
                batch_size=65536):
     """``(alpha [N], beta [N, n_a], y_nb [N, k])``: Eq. (5)-(6) for every transition's
     neighbourhood with ``y = r + gamma (1 - done) v(s', g)``; ``y_nb = y[neighbours_idx]``."""
     idx = jnp.asarray(neighbours_idx)
-    y = bootstrap_values(data.r, data.done, evaluate_in_batches(v, data.s_next, data.g, batch_size),
-                         gamma)
-    y_nb = y[idx]
+    y_nb = bootstrap_table(v, data, gamma, batch_size)[idx]
     if projection is None:
         alpha, beta = fit_local_linear(data.a[idx], y_nb)
     else:
