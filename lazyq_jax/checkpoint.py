@@ -53,20 +53,24 @@ def latest_cycle(directory: str | os.PathLike) -> int | None:
         return manager.latest_step()
 
 
-def abstract_state(config: Config) -> TrainState:
-    """Shapes and dtypes of the :class:`TrainState` that ``config`` trains (no compute)."""
+def abstract_state(config: Config, sharding: jax.sharding.Sharding | None = None) -> TrainState:
+    """Shapes and dtypes of the :class:`TrainState` that ``config`` trains (no compute),
+    placed by ``sharding`` (default: this process's first device)."""
     shapes = jax.eval_shape(make_train_for(config).init, jax.random.PRNGKey(0))
-    sharding = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    sharding = sharding or jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
     return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding), shapes)
 
 
 def load_checkpoint(directory: str | os.PathLike, cycle: int | None = None,
-                    expect: Config | None = None) -> tuple[TrainState, Config]:
+                    expect: Config | None = None,
+                    sharding: jax.sharding.Sharding | None = None) -> tuple[TrainState, Config]:
     """Restore ``(state, config)`` from ``directory`` (the newest cycle unless given).
 
     ``expect``: the config the caller is about to continue with (``--resume``); if
     its network or optimiser settings differ from the stored ones, a
-    :class:`CheckpointError` names the differing fields.
+    :class:`CheckpointError` names the differing fields.  ``sharding``: where the
+    state goes (e.g. ``parallel.replicated(mesh)``; default: this process's first
+    device).  A checkpoint restores on any device count, whatever wrote it.
     """
     directory = Path(directory)
     found = latest_cycle(directory)
@@ -94,7 +98,7 @@ def load_checkpoint(directory: str | os.PathLike, cycle: int | None = None,
             _check_compatible(directory / str(cycle), config, expect)
         try:
             restored = manager.restore(cycle, args=ocp.args.Composite(
-                state=ocp.args.StandardRestore(abstract_state(config))))
+                state=ocp.args.StandardRestore(abstract_state(config, sharding))))
         except Exception as e:
             raise CheckpointError(f"{directory / str(cycle)}: partial or incompatible checkpoint "
                                   f"state ({type(e).__name__}: {e})") from e

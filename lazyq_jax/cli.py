@@ -1,6 +1,8 @@
 """``python -m lazyq_jax collect|train ...``: parse, then call library functions.
 
 Any config field can be overridden: ``--set train.width=128 --set seed=3``.
+Devices: ``--set parallel.devices=N`` (default all), ``LAZYQ_HOST_DEVICES=N`` for N
+CPU devices, ``--set parallel.distributed=true`` or ``LAZYQ_DISTRIBUTED=1`` on a cluster.
 """
 
 from __future__ import annotations
@@ -15,11 +17,14 @@ from lazyq_jax.checkpoint import CheckpointError, load_checkpoint
 from lazyq_jax.config import PRESETS, Config, ConfigError, override, preset, to_dict
 from lazyq_jax.data import DatasetError
 from lazyq_jax.evaluate import EvalError, evaluate_run
-from lazyq_jax.pipeline import RunDirError, fit, prepare_dataset
+from lazyq_jax.parallel import force_host_devices, is_main_process, maybe_initialize_distributed
+from lazyq_jax.pipeline import RunDirError, fit, mesh_for, prepare_dataset
 
 
 def _config(args) -> Config:
-    return override(preset(args.preset), args.set or [])
+    config = override(preset(args.preset), args.set or [])
+    maybe_initialize_distributed(config.parallel)  # before anything touches a device
+    return config
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:
@@ -35,9 +40,9 @@ def cmd_collect(args) -> None:
     config = _config(args)
     run_dir = args.run_dir or Path("runs") / args.preset
     run_dir.mkdir(parents=True, exist_ok=True)
-    prepare_dataset(config, run_dir, progress=not args.no_progress)
+    prepare_dataset(config, run_dir, progress=not args.no_progress, mesh=mesh_for(config))
     summary = run_dir / "dataset_summary.json"
-    if summary.exists():
+    if summary.exists() and is_main_process():
         print(summary.read_text())
 
 
@@ -48,7 +53,7 @@ def cmd_train(args) -> None:
     fit(config, run_dir, resume=args.resume, overwrite=args.overwrite,
         progress=not args.no_progress)
     print(f"trained in {time.perf_counter() - t:.1f} s")
-    if not args.no_eval:
+    if not args.no_eval and is_main_process():  # evaluation runs on one device of process 0
         _evaluate(run_dir, [])
     print(f"run directory: {run_dir}")
 
@@ -102,6 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=lambda a: print(json.dumps(to_dict(_config(a)), indent=1)))
     args = parser.parse_args(argv)
     try:
+        force_host_devices()  # LAZYQ_HOST_DEVICES, before JAX starts its backends
         args.func(args)
     except ConfigError as e:
         parser.exit(2, f"config error: {e}\n")

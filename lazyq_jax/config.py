@@ -130,7 +130,10 @@ class CollectConfig:
     ``n_starts`` finger starts uniform in ``[-start_range, start_range]^2`` outside
     the disk; from each, ``moves_per_start`` moves in one random direction; at
     every move the reward is recorded for ``n_goals`` goals drawn uniformly from
-    ``[-pi, pi)``.  Pushes run in jitted batches of at most ``chunk_size`` episodes.
+    ``[-pi, pi)``.  Pushes run in jitted batches (chunks) of at most ``chunk_size``
+    episodes, one chunk per device at a time: the dataset is bitwise the same for
+    any device count, and a number of chunks that the device count divides wastes
+    no work (the default 1250 makes the paper's 5000 starts 4 chunks).
     """
 
     push: PushConfig = PushConfig()
@@ -138,7 +141,7 @@ class CollectConfig:
     moves_per_start: int = 2
     n_goals: int = 100
     start_range: float = 1.0
-    chunk_size: int = 2048
+    chunk_size: int = 1250
 
     def __post_init__(self) -> None:
         _counts(self, "n_starts", "moves_per_start", "n_goals", "chunk_size")
@@ -237,6 +240,32 @@ class EvalConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class ParallelConfig:
+    """Which devices a run uses (see :mod:`lazyq_jax.parallel`).
+
+    ``devices``: how many devices the mesh spans; ``0`` (default) means all devices
+    (of all processes when distributed).  Results do not depend on it: the dataset
+    and the neighbourhoods are bitwise the same for every device count, trained
+    parameters the same up to floating-point reduction order.  On CPU, more host
+    devices come from ``XLA_FLAGS=--xla_force_host_platform_device_count=N``, set
+    before JAX starts (the CLI does it from ``LAZYQ_HOST_DEVICES``).
+
+    ``distributed``: call ``jax.distributed.initialize()`` first (multi-host; the
+    environment variable ``LAZYQ_DISTRIBUTED=1`` does the same).  Coordinator,
+    process count and id come from the cluster (SLURM, Open MPI, TPU pods, ...) or
+    from ``JAX_COORDINATOR_ADDRESS``, ``JAX_NUM_PROCESSES`` and ``JAX_PROCESS_ID``.
+    """
+
+    devices: int = 0
+    distributed: bool = False
+
+    def __post_init__(self) -> None:
+        _counts(self, "devices", minimum=0)
+        _check(isinstance(self.distributed, bool),
+               f"ParallelConfig.distributed must be true or false, got {self.distributed!r}")
+
+
+@dataclasses.dataclass(frozen=True)
 class Config:
     """Everything one run needs; saved as JSON beside its dataset and checkpoints."""
 
@@ -245,6 +274,7 @@ class Config:
     neighbours: NeighbourConfig = NeighbourConfig()
     train: TrainConfig = TrainConfig()
     eval: EvalConfig = EvalConfig()
+    parallel: ParallelConfig = ParallelConfig()
 
     def __post_init__(self) -> None:
         _check(_is_int(self.seed) and self.seed >= 0,

@@ -12,10 +12,12 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh, PartitionSpec as P
 from tqdm.auto import tqdm
 
 from lazyq_jax.config import CollectConfig, ConfigError, from_dict, to_dict
 from lazyq_jax.env import PushEnv, disk_moved, push_reward, sample_outside_disk
+from lazyq_jax.parallel import AXIS, mesh_size, put, sharded, to_host
 from lazyq_jax.types import Transitions
 
 DATASET_FORMAT = "lazyq-jax-dataset"
@@ -69,7 +71,7 @@ def _episode_keys(key: jax.Array, first: int, count: int) -> jax.Array:
     return jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.arange(first, first + count))
 
 
-def collect(key: jax.Array, config: CollectConfig = CollectConfig(), *,
+def collect(key: jax.Array, config: CollectConfig = CollectConfig(), *, mesh: Mesh | None = None,
             progress: bool = True) -> Transitions:
     """Simulate the random pushes of §V-A-3 in jitted MJX batches and relabel for many goals.
 
@@ -82,22 +84,36 @@ def collect(key: jax.Array, config: CollectConfig = CollectConfig(), *,
     (the paper resets the disk).  So ``N <= n_starts * moves_per_start * n_goals``;
     with the paper's 5000 x 2 x 100 that is at most 1,000,000 rows.
 
-    Same ``key`` and config give the same dataset, whatever ``chunk_size``.  The
-    physics runs in float64 when ``config.push.float64`` (see :class:`PushConfig`).
+    ``mesh`` (see :mod:`lazyq_jax.parallel`): the chunks of ``chunk_size`` episodes are
+    spread over its devices with ``shard_map``, one chunk per device and call; with
+    several processes each simulates the chunks of its own devices and all receive
+    the whole dataset.
+
+    Same ``key`` and config give the bitwise same dataset on any number of devices:
+    every device runs the same program on a chunk of the same size, which holds the
+    same episodes.  (Another ``chunk_size`` can change the last bits of a few
+    episodes: XLA's vectorised code depends on the batch size.)  The physics runs in
+    float64 when ``config.push.float64`` (see :class:`PushConfig`).
     """
     if not isinstance(config, CollectConfig):
         raise TypeError(f"collect needs a CollectConfig, got {type(config).__name__}")
-    n = config.n_starts
-    n_chunks = math.ceil(n / config.chunk_size)
-    chunk = math.ceil(n / n_chunks)  # equal chunks: one compile, little padding
+    n, d = config.n_starts, mesh_size(mesh)
+    chunk = math.ceil(n / math.ceil(n / config.chunk_size))  # equal chunks, little padding
+    n_calls = math.ceil(math.ceil(n / chunk) / d)
+    per_call = d * chunk
     parts = []
     bar = tqdm(total=n, desc="collect (episodes)", unit="ep", disable=not progress, leave=False)
     with _precision(config.push.float64):
-        run = jax.jit(jax.vmap(make_episode_fn(PushEnv(config.push), config)))
-        for c in range(n_chunks):
-            out = jax.device_get(run(_episode_keys(key, c * chunk, chunk)))
-            take = min(chunk, n - c * chunk)
-            parts.append({k: np.asarray(v[:take]) for k, v in out.items()})
+        episodes = jax.vmap(make_episode_fn(PushEnv(config.push), config))
+        if mesh is not None:  # no collectives: each device simulates its own chunk
+            episodes = jax.shard_map(episodes, mesh=mesh, in_specs=P(AXIS), out_specs=P(AXIS),
+                                     check_vma=False)
+        run = jax.jit(episodes)
+        for c in range(n_calls):
+            keys = put(_episode_keys(key, c * per_call, per_call), sharded(mesh))
+            out = to_host(run(keys))
+            take = min(per_call, n - c * per_call)
+            parts.append({k: v[:take] for k, v in out.items()})
             bar.update(take)
     bar.close()
     eps = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}

@@ -22,7 +22,7 @@ from lazyq_jax.pipeline import purpose_key
 from lazyq_jax.train import make_train_for
 
 NOT_PUSHED, CORRECT, WRONG = 0, 1, 2
-AXIS_GOALS = jnp.array([0.0, jnp.pi / 2, jnp.pi, -jnp.pi / 2], jnp.float32)
+AXIS_GOALS = np.array([0.0, np.pi / 2, np.pi, -np.pi / 2], np.float32)  # NumPy: importing starts no backend
 
 
 class Rollouts(NamedTuple):
@@ -103,7 +103,7 @@ def protocol_b(env: PushEnv, act: Act, key: jax.Array, cfg: EvalConfig,
     def controller(st: PushState) -> jax.Array:
         direction = target - st.disk_xy
         axes = jnp.stack([jnp.cos(AXIS_GOALS), jnp.sin(AXIS_GOALS)], -1)  # [4, 2]
-        return AXIS_GOALS[jnp.argmax(direction @ axes.T, axis=-1)]
+        return jnp.asarray(AXIS_GOALS)[jnp.argmax(direction @ axes.T, axis=-1)]
 
     def reached(disk):
         return jnp.linalg.norm(target - disk, axis=-1) < cfg.success_radius

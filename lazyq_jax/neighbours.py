@@ -56,6 +56,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax.sharding import Mesh, PartitionSpec as P
+
+from lazyq_jax.parallel import AXIS, to_host
 
 PI = np.float32(np.pi)
 TWO_PI = np.float32(2 * np.pi)
@@ -304,15 +307,13 @@ def _mix32(x):
     return x ^ (x >> 16)
 
 
-def _floyd_ranks(key, m, k: int):
+def _floyd_ranks(seed, m, k: int):
     """``k`` distinct ranks in ``[0, m)`` per row, uniform over k-subsets (Floyd's algorithm).
 
     Each draw ``t ~ U{0..j}`` is ``floor(u * (j + 1))`` with a 24-bit uniform ``u`` from a
-    hash of a per-query seed (one threefry draw per query); the bias is below
+    hash of the query's ``seed`` (uint32, one threefry draw per query); the bias is below
     ``m / 2**24``.
     """
-    seed = jax.random.bits(key, m.shape, jnp.uint32)
-
     cols = []
     for i in range(k):  # unrolled: draw i only compares with the i earlier draws
         j = m - k + i
@@ -335,8 +336,10 @@ def _select_bit(word, r):
     return pos
 
 
-def _search(index: GridIndex, key, qx, qy, qg, *, lo: int, hi: int, n_items: int, steps: int):
+def _search(index: GridIndex, seed, qx, qy, qg, *, lo: int, hi: int, n_items: int, steps: int):
     """Levels ``lo..hi`` for every query (stencil of level ``hi``), then sampling at that level.
+
+    ``seed``: uint32 ``[Q]``, the random bits of each query's sample.
 
     ``n_items`` must be at least the total number of items; ``steps`` at least the
     bit length of the largest number of items of one query. Returns ``(idx, level, count)``
@@ -358,7 +361,7 @@ def _search(index: GridIndex, key, qx, qy, qg, *, lo: int, hi: int, n_items: int
     word = jnp.take_along_axis(words, li[item_q][:, None], 1)[:, 0]
     pc = jax.lax.population_count(word).astype(jnp.int32)
     prefix = jnp.cumsum(pc) - pc
-    ranks = _floyd_ranks(key, jnp.where(found, m, k), k)  # [Q, k]
+    ranks = _floyd_ranks(seed, jnp.where(found, m, k), k)  # [Q, k]
     target = jnp.take(prefix, jnp.minimum(first, n_items - 1))[:, None] + ranks
     # Last item t of the query with prefix[t] <= target (upper-bound search in its item window).
     lo_t = jnp.broadcast_to(first[:, None], ranks.shape)
@@ -376,16 +379,23 @@ def _search(index: GridIndex, key, qx, qy, qg, *, lo: int, hi: int, n_items: int
     return idx, level.astype(jnp.int32), m.astype(jnp.int32)
 
 
-@partial(jax.jit, static_argnames=("lo", "hi", "n_items", "steps"), donate_argnums=(5,))
-def _pass(index: GridIndex, key, qs, qg, sub, out, *, lo, hi, n_items, steps):
+@partial(jax.jit, static_argnames=("lo", "hi", "n_items", "steps", "mesh"), donate_argnums=(5,))
+def _pass(index: GridIndex, seeds, qs, qg, sub, out, *, lo, hi, n_items, steps, mesh=None):
     """One :func:`_search` on the queries ``sub`` (indices), written into ``out = (idx, level, count)``.
 
     Padding entries of ``sub`` are ``Q`` (out of range): they search a copy of query
     ``Q - 1`` and their results are dropped, so every output row has one writer.
+    ``seeds[Q]`` holds every query's random bits, so a query's sample does not depend
+    on which other queries share its pass.  With a ``mesh``, ``sub`` is split into one
+    contiguous block per device (``shard_map``; the index is replicated) and
+    ``n_items`` counts the items of one block.
     """
     read = jnp.minimum(sub, qs.shape[0] - 1)
-    res = _search(index, key, qs[read, 0], qs[read, 1], qg[read], lo=lo, hi=hi, n_items=n_items,
-                  steps=steps)
+    search = partial(_search, lo=lo, hi=hi, n_items=n_items, steps=steps)
+    if mesh is not None:
+        search = jax.shard_map(search, mesh=mesh, in_specs=(P(), *[P(AXIS)] * 4),
+                               out_specs=P(AXIS), check_vma=False)
+    res = search(index, seeds[read], qs[read, 0], qs[read, 1], qg[read])
     return tuple(o.at[sub].set(r, mode="drop") for o, r in zip(out, res))
 
 
@@ -419,7 +429,8 @@ def query_neighbours(index: GridIndex, key, query_s, query_g) -> Neighbours:
     qs = jnp.asarray(query_s, jnp.float32)
     _, _, n_rows, n_blocks, _ = _stencil(index, index.max_level)
     per_query = n_rows * n_blocks * (-(-index.max_window // W))
-    idx, level, count = _search(index, key, qs[:, 0], qs[:, 1], wrap_angle(jnp.asarray(query_g)),
+    seed = jax.random.bits(key, (q,), jnp.uint32)
+    idx, level, count = _search(index, seed, qs[:, 0], qs[:, 1], wrap_angle(jnp.asarray(query_g)),
                                 lo=0, hi=index.max_level, n_items=max(q * per_query, 1),
                                 steps=per_query.bit_length())
     return Neighbours(idx=idx, level=level, count=count)
@@ -434,7 +445,7 @@ def check_found(nb: Neighbours) -> Neighbours:
     return nb
 
 
-def search_all(index: GridIndex, key, query_s, query_g) -> Neighbours:
+def search_all(index: GridIndex, key, query_s, query_g, *, mesh: Mesh | None = None) -> Neighbours:
     """Exact neighbours of any number of queries (host-driven passes; not jittable).
 
     Pass 1 evaluates level 0 for all queries (sorted by cell for locality); the
@@ -442,6 +453,10 @@ def search_all(index: GridIndex, key, query_s, query_g) -> Neighbours:
     the stencils of levels ``1..3``, ``4..7``, ``8..15``, ... until the radius
     covers all data, where ``|B| = N >= k``. Item counts are read back between
     passes to size each pass exactly (rounded by :func:`_bucket`).
+
+    A query's sample depends only on ``key`` and its position in ``query_s``.
+    ``mesh`` (see :mod:`lazyq_jax.parallel`): every pass splits its queries over
+    the devices, the data (index) is replicated; the result is bitwise the same.
     """
     qs, qg = _check_points(query_s, query_g, "query")
     qg = wrap_angle(qg)
@@ -466,17 +481,21 @@ def search_all(index: GridIndex, key, query_s, query_g) -> Neighbours:
     out = (jnp.zeros((n_q, k), jnp.int32), jnp.zeros((n_q,), jnp.int32), jnp.zeros((n_q,), jnp.int32))
     pending, lo, hi, p = order, 0, 0, 0
     qs_j, qg_j = jnp.asarray(qs), jnp.asarray(qg)
+    d = 1 if mesh is None else mesh.size
     while pending.size:
-        # Later passes: pad the (few) pending queries to a bucketed size with the
-        # out-of-range index n_q, whose results _pass drops.
-        sub = pending if p == 0 else np.concatenate(
-            [pending, np.full(_bucket(pending.size) - pending.size, n_q, np.int32)])
+        # Pad the pending queries (pass 1: to a multiple of the device count; later,
+        # few, passes: to a bucketed size) with the out-of-range index n_q, whose
+        # results _pass drops.
+        size = -(-(pending.size if p == 0 else _bucket(pending.size)) // d) * d
+        sub = np.concatenate([pending, np.full(size - pending.size, n_q, np.int32)])
         sub_j = jnp.asarray(sub)
         read = jnp.minimum(sub_j, n_q - 1)
         n_it = np.asarray(_items_per_query(index, qs_j[read, 0], qs_j[read, 1], qg_j[read], level=hi))
-        out = _pass(index, jax.random.fold_in(key, p), qs_j, qg_j, sub_j, out, lo=lo, hi=hi,
-                    n_items=_bucket(n_it.sum()), steps=int(n_it.max()).bit_length())
-        pending = pending[np.asarray(out[1])[pending] < 0]
+        seeds = jax.random.bits(jax.random.fold_in(key, p), (n_q,), jnp.uint32)
+        out = _pass(index, seeds, qs_j, qg_j, sub_j, out, lo=lo, hi=hi,
+                    n_items=_bucket(n_it.reshape(d, -1).sum(axis=1).max()),
+                    steps=int(n_it.max()).bit_length(), mesh=mesh)
+        pending = pending[to_host(out[1])[pending] < 0]
         if pending.size and hi >= level_all:
             raise AssertionError("internal error: radius covers all data but fewer than k members")
         lo, hi, p = hi + 1, min(max(2 * hi + 1, 3), level_all), p + 1
@@ -485,7 +504,7 @@ def search_all(index: GridIndex, key, query_s, query_g) -> Neighbours:
 
 
 def find_neighbours(key, data_s, data_g, query_s, query_g, *, k=20, radius_s=0.06, radius_g=0.1,
-                    growth=2 ** (1 / 3)) -> Neighbours:
+                    growth=2 ** (1 / 3), mesh: Mesh | None = None) -> Neighbours:
     """Neighbourhoods of paper §V-A-2 (see the module docstring for the exact semantics).
 
     Builds the grid index (:func:`build_index`) and runs :func:`search_all`. Raises
@@ -494,4 +513,4 @@ def find_neighbours(key, data_s, data_g, query_s, query_g, *, k=20, radius_s=0.0
     """
     _check_points(query_s, query_g, "query")
     index = build_index(data_s, data_g, k=k, radius_s=radius_s, radius_g=radius_g, growth=growth, max_level=0)
-    return search_all(index, key, query_s, query_g)
+    return search_all(index, key, query_s, query_g, mesh=mesh)

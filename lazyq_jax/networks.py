@@ -20,17 +20,24 @@ class ValueNetwork(nn.Module):
     With the paper's ``depth = 9``: Dense, BN, ReLU, ..., Dense(1); the last
     Dense is linear and outputs the value.  Call as ``apply(variables, s, g, train=...)``
     with ``s: [B, 2]``, ``g: [B]``; returns ``V: [B]``.
+
+    ``axis_name``: inside ``shard_map`` over a batch split on that mesh axis, batch
+    norm averages its statistics over all devices (synchronised batch norm: the
+    same statistics as the whole batch on one device).  The parameters do not
+    depend on it.
     """
 
     width: int = 64
     depth: int = 9
     state_scale: float = 1.0
+    axis_name: str | None = None
 
     @nn.compact
     def __call__(self, s: jax.Array, g: jax.Array, train: bool = False) -> jax.Array:
         x = encode(s, g, self.state_scale)
         for _ in range(self.depth - 1):
             x = nn.Dense(self.width)(x)
-            x = nn.BatchNorm(use_running_average=not train, momentum=0.99)(x)
+            x = nn.BatchNorm(use_running_average=not train, momentum=0.99,
+                             axis_name=self.axis_name if train else None)(x)
             x = nn.relu(x)
         return nn.Dense(1)(x)[..., 0]

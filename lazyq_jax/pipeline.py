@@ -13,12 +13,15 @@ from pathlib import Path
 
 import jax
 import numpy as np
+from jax.sharding import Mesh
 from tqdm.auto import tqdm
 
 from lazyq_jax.checkpoint import latest_cycle, load_checkpoint, save_checkpoint
 from lazyq_jax.config import Config, to_dict
 from lazyq_jax.data import DatasetError, collect, dataset_summary, load_dataset, save_dataset
 from lazyq_jax.neighbours import find_neighbours
+from lazyq_jax.parallel import (check_divisible, is_main_process, make_mesh, put, replicated,
+                                to_host)
 from lazyq_jax.train import make_train_for
 from lazyq_jax.types import Transitions
 
@@ -44,8 +47,10 @@ def _log(msg: str) -> None:
     tqdm.write(msg)
 
 
-def prepare_dataset(config: Config, run_dir: Path, progress: bool = True) -> Transitions:
-    """``run_dir/dataset.npz`` if it was collected with this config and seed, else collect it."""
+def prepare_dataset(config: Config, run_dir: Path, progress: bool = True,
+                    mesh: Mesh | None = None) -> Transitions:
+    """``run_dir/dataset.npz`` if it was collected with this config and seed, else collect it
+    (split over ``mesh``; only process 0 writes the file)."""
     path = run_dir / "dataset.npz"
     if path.exists():
         try:
@@ -57,31 +62,46 @@ def prepare_dataset(config: Config, run_dir: Path, progress: bool = True) -> Tra
         except DatasetError as e:
             _log(f"dataset: ignoring unusable cache ({e}); collecting anew")
     t = time.perf_counter()
-    data = collect(run_keys(config)["collect"], config.collect, progress=progress)
-    save_dataset(path, data, config.collect, seed=config.seed)
+    data = collect(run_keys(config)["collect"], config.collect, mesh=mesh, progress=progress)
     summary = dataset_summary(data, config.collect.n_goals)
-    (run_dir / "dataset_summary.json").write_text(json.dumps(summary, indent=1))
+    if is_main_process():
+        save_dataset(path, data, config.collect, seed=config.seed)
+        (run_dir / "dataset_summary.json").write_text(json.dumps(summary, indent=1))
     _log(f"dataset: {data.size:,} rows, {summary['moves_that_moved_disk']} of {summary['moves']} "
          f"moves moved the disk ({time.perf_counter() - t:.1f} s) -> {path}")
     return data
 
 
-def neighbours_for(config: Config, data: Transitions, cycle: int | None = None) -> jax.Array:
+def neighbours_for(config: Config, data: Transitions, cycle: int | None = None,
+                   mesh: Mesh | None = None) -> jax.Array:
     """``idx[N, k]``: each transition's neighbourhood (§V-A-2) with every row as a query.
 
     ``cycle`` picks a fresh random k-subset per cycle (``train.resample_neighbours``).
+    ``mesh``: queries split over its devices (the same result for any device count).
     """
     key = run_keys(config)["neighbours"]
     if cycle is not None:
         key = jax.random.fold_in(purpose_key(config.seed, "resample"), cycle)
     nc = config.neighbours
     found = find_neighbours(key, data.s, data.g, data.s, data.g, k=nc.k, radius_s=nc.radius_s,
-                            radius_g=nc.radius_g, growth=nc.growth)
+                            radius_g=nc.radius_g, growth=nc.growth, mesh=mesh)
     return found.idx
 
 
 class RunDirError(ValueError):
     """The run directory holds another run that this call would overwrite."""
+
+
+def mesh_for(config: Config) -> Mesh:
+    """The device mesh of ``config.parallel``, with the config checked against it.
+
+    Raises :class:`ConfigError` before anything compiles: more devices than exist,
+    or a batch size the device count does not divide.
+    """
+    mesh = make_mesh(config.parallel)
+    check_divisible("train.batch_size", config.train.batch_size, mesh)
+    check_divisible("train.target_batch_size", config.train.target_batch_size, mesh)
+    return mesh
 
 
 def fit(config: Config, run_dir: str | Path, *, resume: bool = False, overwrite: bool = False,
@@ -93,70 +113,84 @@ def fit(config: Config, run_dir: str | Path, *, resume: bool = False, overwrite:
     run with the same config; a checkpoint of an incompatible config is refused
     before anything in ``run_dir`` is touched.  Without ``resume``, existing
     checkpoints are refused unless ``overwrite=True`` (which deletes them).
+    Every phase runs on the devices of ``config.parallel`` (:func:`mesh_for`).
     Returns ``(state, trainer, data)``.
     """
+    mesh = mesh_for(config)
     run_dir = Path(run_dir)
     ckpt_dir = run_dir / "checkpoints"
     metrics_path = run_dir / "metrics.jsonl"
     restored = None
     if latest_cycle(ckpt_dir) is not None:
         if resume:
-            restored, _ = load_checkpoint(ckpt_dir, expect=config)  # refuses a mismatch early
+            restored, _ = load_checkpoint(ckpt_dir, expect=config,  # refuses a mismatch early
+                                          sharding=replicated(mesh))
         elif overwrite:
             shutil.rmtree(ckpt_dir)
         else:
             raise RunDirError(f"{run_dir} already holds checkpoints of a run; continue it with "
                               "--resume, replace it with --overwrite, or pick another --run-dir")
+    main = is_main_process()
     run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "config.json").write_text(json.dumps(to_dict(config), indent=1))
+    if main:
+        (run_dir / "config.json").write_text(json.dumps(to_dict(config), indent=1))
+    _log(f"devices: {mesh.size} x {mesh.devices.flat[0].platform}"
+         + (f" on {jax.process_count()} processes" if jax.process_count() > 1 else ""))
     timings: dict[str, float] = {}
 
     t = time.perf_counter()
-    data = prepare_dataset(config, run_dir, progress)
+    data = prepare_dataset(config, run_dir, progress, mesh)
     timings["dataset_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
     first = 0 if restored is None else int(restored.cycle)
     idx = jax.block_until_ready(neighbours_for(
-        config, data, first if config.train.resample_neighbours and first > 0 else None))
+        config, data, first if config.train.resample_neighbours and first > 0 else None, mesh))
     timings["neighbours_s"] = time.perf_counter() - t
     _log(f"neighbours: {idx.shape[0]:,} queries x k={idx.shape[1]} ({timings['neighbours_s']:.1f} s)")
 
     tc = config.train
     bar = tqdm(total=tc.epochs, unit="epoch", disable=not progress, leave=False)
-    trainer = make_train_for(config, progress=(lambda e: bar.update(1)) if progress else None)
+    trainer = make_train_for(config, progress=(lambda e: bar.update(1)) if progress else None,
+                             mesh=mesh)
+    data = put(data, replicated(mesh))
     if restored is not None:
         state = restored
         _log(f"resume: from cycle {int(state.cycle)} of {tc.cycles}")
         kept = [line for line in metrics_path.read_text().splitlines()
                 if json.loads(line)["cycle"] <= int(state.cycle)] if metrics_path.exists() else []
-        metrics_path.write_text("".join(line + "\n" for line in kept))
+        if main:
+            metrics_path.write_text("".join(line + "\n" for line in kept))
     else:
         state = trainer.init(run_keys(config)["train"])
-        metrics_path.write_text("")
+        if main:
+            metrics_path.write_text("")
+    state = put(state, replicated(mesh))
 
     run_cycle = jax.jit(trainer.run_cycle)
     t_train = time.perf_counter()
     while int(state.cycle) < tc.cycles:
         cycle = int(state.cycle)
         if tc.resample_neighbours and cycle > first:
-            idx = neighbours_for(config, data, cycle)
+            idx = neighbours_for(config, data, cycle, mesh)
         bar.reset()
         bar.set_description(f"cycle {cycle + 1}/{tc.cycles}")
         t = time.perf_counter()
         state, metrics = run_cycle(state, data, idx)
-        metrics = jax.device_get(metrics)
+        metrics = to_host(metrics)
         seconds = time.perf_counter() - t
         save_checkpoint(ckpt_dir, state, config)
         record = {"cycle": int(state.cycle), "seconds": round(seconds, 2),
                   **{k: np.asarray(v).round(5).tolist() for k, v in metrics.items()}}
-        with metrics_path.open("a") as f:
-            f.write(json.dumps(record) + "\n")
+        if main:
+            with metrics_path.open("a") as f:
+                f.write(json.dumps(record) + "\n")
         _log(f"cycle {record['cycle']:>2}/{tc.cycles}: loss {record['loss']:.4f}  "
              f"Y {record['target_mean']:+.3f}±{record['target_std']:.3f}  "
              f"clip {record['clip_fraction']:.1%}  |β| {record['beta_norm_mean']:.2f}  "
              f"V(probes) {np.round(record['probe_values'], 2).tolist()}  ({seconds:.1f} s)")
     bar.close()
     timings["train_s"] = time.perf_counter() - t_train
-    (run_dir / "timings.json").write_text(json.dumps({k: round(v, 2) for k, v in timings.items()}))
+    if main:
+        (run_dir / "timings.json").write_text(json.dumps({k: round(v, 2) for k, v in timings.items()}))
     return state, trainer, data

@@ -11,8 +11,10 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 from flax import struct
+from jax.sharding import Mesh
 
 from lazyq_jax.local_model import apply_projection, fit_local_linear, greedy_action, safe_norm
+from lazyq_jax.parallel import constrain, mesh_size, replicated, sharded
 from lazyq_jax.types import Transitions
 
 ValueFn = Callable[[jax.Array, jax.Array], jax.Array]  # (s [B, 2], g [B]) -> V [B]
@@ -66,21 +68,29 @@ class TargetDiagnostics:
         return jnp.mean(self.clip_active.astype(jnp.float32))
 
 
-def evaluate_in_batches(v: ValueFn, s, g, batch_size: int):
-    """``v(s, g)`` over ``N`` points in chunks of ``batch_size`` (``lax.map``) to bound memory."""
+def evaluate_in_batches(v: ValueFn, s, g, batch_size: int, mesh: Mesh | None = None):
+    """``v(s, g)`` over ``N`` points in chunks of ``batch_size`` (``lax.map``) to bound memory.
+
+    With a ``mesh`` every chunk is split over its devices (``batch_size`` is rounded
+    up to a multiple of the device count) and the result is replicated.
+    """
     n = s.shape[0]
     if batch_size <= 0:
         raise ValueError(f"batch_size must be positive, got {batch_size}")
-    batch_size = min(batch_size, n)
+    d = mesh_size(mesh)
+    batch_size = -(-min(batch_size, n) // d) * d
     n_b = -(-n // batch_size)
     pad = n_b * batch_size - n
     s_b = jnp.pad(s, ((0, pad), (0, 0))).reshape(n_b, batch_size, s.shape[1])
     g_b = jnp.pad(g, (0, pad)).reshape(n_b, batch_size)
-    return jax.lax.map(lambda sg: v(*sg), (s_b, g_b)).reshape(-1)[:n]
+    chunk = sharded(mesh)
+    values = jax.lax.map(lambda sg: constrain(v(*constrain(sg, chunk)), chunk), (s_b, g_b))
+    return constrain(values.reshape(-1)[:n], replicated(mesh))
 
 
 def dataset_targets(v_target: ValueFn, data: Transitions, neighbours_idx, *, gamma, action_length,
-                    clip=True, v_online: ValueFn | None = None, projection=None, batch_size=65536):
+                    clip=True, v_online: ValueFn | None = None, projection=None, batch_size=65536,
+                    mesh: Mesh | None = None):
     """Targets ``Y [N]`` for the whole dataset and their :class:`TargetDiagnostics`.
 
     * DQN form (``v_online is None``), Eq. (11)-(12): ``alpha, beta`` fitted to
@@ -95,13 +105,15 @@ def dataset_targets(v_target: ValueFn, data: Transitions, neighbours_idx, *, gam
     (data-only, reusable every cycle); otherwise the fit is recomputed. ``v_*`` are
     callables ``(s [B, 2], g [B]) -> V [B]``, e.g. ``functools.partial(net.apply, params)``,
     evaluated in chunks of ``batch_size``. Traceable: wrap the caller in ``jax.jit``.
+    ``mesh``: split the work over its devices (see :func:`local_fits`).
     """
     idx = jnp.asarray(neighbours_idx)
     if idx.ndim != 2 or idx.shape[0] != data.r.shape[0]:
         raise ValueError(f"neighbours_idx must be [N={data.r.shape[0]}, k], got {idx.shape}")
 
     def fit(v):
-        return local_fits(v, data, idx, gamma=gamma, projection=projection, batch_size=batch_size)
+        return local_fits(v, data, idx, gamma=gamma, projection=projection, batch_size=batch_size,
+                          mesh=mesh)
 
     alpha, beta, y_nb = fit(v_target)
     if v_online is None:
@@ -112,19 +124,24 @@ def dataset_targets(v_target: ValueFn, data: Transitions, neighbours_idx, *, gam
     return target, TargetDiagnostics(clip_active=active, alpha=alpha, beta_norm=safe_norm(beta))
 
 
-def bootstrap_table(v: ValueFn, data: Transitions, gamma, batch_size=65536):
+def bootstrap_table(v: ValueFn, data: Transitions, gamma, batch_size=65536,
+                    mesh: Mesh | None = None):
     """``y_j = r_j + gamma (1 - done_j) v(s'_j, g_j)`` for every transition (Eq. 6's bracket),
-    with ``v`` evaluated in chunks of ``batch_size``."""
-    v_next = evaluate_in_batches(v, data.s_next, data.g, batch_size)
+    with ``v`` evaluated in chunks of ``batch_size`` (split over ``mesh``)."""
+    v_next = evaluate_in_batches(v, data.s_next, data.g, batch_size, mesh)
     return bootstrap_values(data.r, data.done, v_next, gamma)
 
 
 def local_fits(v: ValueFn, data: Transitions, neighbours_idx, *, gamma, projection=None,
-               batch_size=65536):
+               batch_size=65536, mesh: Mesh | None = None):
     """``(alpha [N], beta [N, n_a], y_nb [N, k])``: Eq. (5)-(6) for every transition's
-    neighbourhood with ``y = r + gamma (1 - done) v(s', g)``; ``y_nb = y[neighbours_idx]``."""
-    idx = jnp.asarray(neighbours_idx)
-    y_nb = bootstrap_table(v, data, gamma, batch_size)[idx]
+    neighbourhood with ``y = r + gamma (1 - done) v(s', g)``; ``y_nb = y[neighbours_idx]``.
+
+    With a ``mesh`` the value table is computed split over the devices and then
+    replicated, and the fits are split by rows (the outputs are row-sharded).
+    """
+    idx = constrain(jnp.asarray(neighbours_idx), sharded(mesh))
+    y_nb = bootstrap_table(v, data, gamma, batch_size, mesh)[idx]
     if projection is None:
         alpha, beta = fit_local_linear(data.a[idx], y_nb)
     else:

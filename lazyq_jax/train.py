@@ -25,9 +25,11 @@ import jax
 import jax.numpy as jnp
 import optax
 from flax import struct
+from jax.sharding import Mesh, PartitionSpec as P
 
 from lazyq_jax.config import Config, TrainConfig
 from lazyq_jax.networks import ValueNetwork
+from lazyq_jax.parallel import AXIS, check_divisible, mesh_size
 from lazyq_jax.local_model import safe_norm
 from lazyq_jax.targets import double_dqn_target, lazy_target, local_fits
 from lazyq_jax.types import Transitions
@@ -62,16 +64,31 @@ class Trainer(NamedTuple):
 
 
 def make_train(config: TrainConfig, action_length: float, *, state_scale: float = 1.0,
-               progress: Callable[[int], None] | None = None) -> Trainer:
+               progress: Callable[[int], None] | None = None, mesh: Mesh | None = None) -> Trainer:
     """Build the pure training functions for ``config`` (see module docstring).
 
     ``action_length`` is ``c`` in ``max_{|a|<=c} beta.a = c|beta|`` (Eq. 7).
     ``progress``, if given, is called on the host with the epoch number after every
     epoch (through ``jax.debug.callback``) to drive a progress bar.
+
+    ``mesh`` (see :mod:`lazyq_jax.parallel`): data-parallel training.  An epoch runs
+    in ``shard_map``: every device draws the same shuffle, takes its contiguous
+    share of each minibatch, and the gradients are averaged with ``pmean``; batch
+    norm is synchronised (``axis_name``: its statistics are those of the whole
+    minibatch, as on one device), so parameters and batch statistics stay
+    replicated and equal the single-device ones up to reduction order.  The targets
+    are computed split over the devices too (sharding constraints).  Pass the
+    dataset replicated (``parallel.put(data, parallel.replicated(mesh))``).
+    ``batch_size`` and ``target_batch_size`` must be multiples of the device count.
     """
     if not isinstance(config, TrainConfig):
         raise TypeError(f"make_train needs a TrainConfig, got {type(config).__name__}")
+    check_divisible("train.batch_size", config.batch_size, mesh)
+    check_divisible("train.target_batch_size", config.target_batch_size, mesh)
+    d = mesh_size(mesh)
     network = ValueNetwork(width=config.width, depth=config.depth, state_scale=state_scale)
+    # The training forward pass of one device's share (batch norm synchronised over the mesh).
+    train_network = network if mesh is None else network.clone(axis_name=AXIS)
     optimizer = optax.adam(config.learning_rate)
 
     def init(key: jax.Array) -> TrainState:
@@ -90,31 +107,46 @@ def make_train(config: TrainConfig, action_length: float, *, state_scale: float 
 
     def fits(state: TrainState, data: Transitions, idx: jax.Array):
         return local_fits(value_fn(state), data, idx, gamma=config.gamma,
-                          batch_size=config.target_batch_size)
+                          batch_size=config.target_batch_size, mesh=mesh)
 
     def loss_fn(params, batch_stats, s, g, y):
-        v, updates = network.apply({"params": params, "batch_stats": batch_stats}, s, g,
-                                   train=True, mutable=["batch_stats"])
-        return jnp.mean((v - y) ** 2), updates["batch_stats"]
+        v, updates = train_network.apply({"params": params, "batch_stats": batch_stats}, s, g,
+                                         train=True, mutable=["batch_stats"])
+        return mean_over_mesh(jnp.mean((v - y) ** 2)), updates["batch_stats"]
 
-    def epoch(state: TrainState, data: Transitions, y: jax.Array, key: jax.Array):
+    def mean_over_mesh(x):
+        return x if mesh is None else jax.lax.pmean(x, AXIS)
+
+    def device_epoch(state: TrainState, data: Transitions, y: jax.Array, key: jax.Array):
+        # One device's part of an epoch (all of it without a mesh).
         n = data.r.shape[0]
-        batch = min(config.batch_size, n)
+        batch = min(config.batch_size, n // d * d)
+        if batch == 0:
+            raise ValueError(f"{n} transitions cannot be split over {d} devices")
         n_batches = n // batch  # the shuffled remainder (< batch rows) is left out of this epoch
-        perm = jax.random.permutation(key, n)
+        share = batch // d
+        first = 0 if mesh is None else jax.lax.axis_index(AXIS) * share
+        perm = jax.random.permutation(key, n)  # the same on every device
 
         def minibatch(carry, i):
             params, batch_stats, opt_state = carry
-            rows = jax.lax.dynamic_slice_in_dim(perm, i * batch, batch)
+            rows = jax.lax.dynamic_slice_in_dim(perm, i * batch + first, share)
             (loss, batch_stats), grads = jax.value_and_grad(loss_fn, has_aux=True)(
                 params, batch_stats, data.s[rows], data.g[rows], y[rows])
-            updates, opt_state = optimizer.update(grads, opt_state, params)
+            updates, opt_state = optimizer.update(mean_over_mesh(grads), opt_state, params)
             return (optax.apply_updates(params, updates), batch_stats, opt_state), loss
 
         (params, batch_stats, opt_state), losses = jax.lax.scan(
             minibatch, (state.params, state.batch_stats, state.opt_state), jnp.arange(n_batches))
         state = state.replace(params=params, batch_stats=batch_stats, opt_state=opt_state)
         return state, jnp.mean(losses)
+
+    def epoch(state: TrainState, data: Transitions, y: jax.Array, key: jax.Array):
+        if mesh is None:
+            return device_epoch(state, data, y, key)
+        # Everything in and out is replicated; inside, each device works on its share.
+        return jax.shard_map(device_epoch, mesh=mesh, in_specs=P(), out_specs=P(),
+                             check_vma=False)(state, data, y, key)
 
     def run_cycle(state: TrainState, data: Transitions, idx: jax.Array):
         key, k_epochs = jax.random.split(state.key)
