@@ -18,7 +18,7 @@ import orbax.checkpoint as ocp
 from lazyq_jax.config import Config, ConfigError, from_dict, to_dict
 from lazyq_jax.train import TrainState, make_train_for
 
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2  # 2: hidden Dense layers without bias
 
 
 class CheckpointError(ValueError):

@@ -21,6 +21,10 @@ class ValueNetwork(nn.Module):
     Dense is linear and outputs the value.  Call as ``apply(variables, s, g, train=...)``
     with ``s: [B, 2]``, ``g: [B]``; returns ``V: [B]``.
 
+    The hidden Dense layers have no bias: batch norm subtracts the batch mean, so
+    such a bias would get an exactly zero gradient and only drift with rounding
+    noise (which Adam scales up to ``learning_rate``-sized steps).
+
     ``axis_name``: inside ``shard_map`` over a batch split on that mesh axis, batch
     norm averages its statistics over all devices (synchronised batch norm: the
     same statistics as the whole batch on one device).  The parameters do not
@@ -36,7 +40,7 @@ class ValueNetwork(nn.Module):
     def __call__(self, s: jax.Array, g: jax.Array, train: bool = False) -> jax.Array:
         x = encode(s, g, self.state_scale)
         for _ in range(self.depth - 1):
-            x = nn.Dense(self.width)(x)
+            x = nn.Dense(self.width, use_bias=False)(x)  # BN's bias replaces it
             x = nn.BatchNorm(use_running_average=not train, momentum=0.99,
                              axis_name=self.axis_name if train else None)(x)
             x = nn.relu(x)

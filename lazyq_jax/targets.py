@@ -140,10 +140,18 @@ def local_fits(v: ValueFn, data: Transitions, neighbours_idx, *, gamma, projecti
     With a ``mesh`` the value table is computed split over the devices and then
     replicated, and the fits are split by rows (the outputs are row-sharded).
     """
-    idx = constrain(jnp.asarray(neighbours_idx), sharded(mesh))
+    idx = jnp.asarray(neighbours_idx)
+    n, pad = idx.shape[0], -idx.shape[0] % mesh_size(mesh)
+    if pad:  # rows split evenly over the devices (row 0 repeated, dropped below)
+        idx = jnp.concatenate([idx, jnp.broadcast_to(idx[:1], (pad, idx.shape[1]))])
+        if projection is not None:
+            projection = jnp.concatenate([projection, jnp.repeat(projection[:1], pad, 0)])
+    idx = constrain(idx, sharded(mesh))
     y_nb = bootstrap_table(v, data, gamma, batch_size, mesh)[idx]
     if projection is None:
         alpha, beta = fit_local_linear(data.a[idx], y_nb)
     else:
         alpha, beta = apply_projection(projection, y_nb)
-    return alpha, beta, y_nb
+    out = alpha[:n], beta[:n], y_nb[:n]
+    # Uneven row shards have no NamedSharding: hand such results back replicated.
+    return constrain(out, replicated(mesh)) if pad else out
