@@ -58,7 +58,16 @@ def maybe_initialize_distributed(config: ParallelConfig) -> bool:
     wanted = config.distributed or os.environ.get(DISTRIBUTED_ENV, "") in ("1", "true", "yes")
     if not wanted or jax.distributed.is_initialized():
         return False
-    jax.distributed.initialize()
+    # jax reads JAX_COORDINATOR_ADDRESS itself; the process count and id only on clusters
+    # it detects (SLURM, Open MPI, TPU), so a hand launch passes them through these.
+    counts = {}
+    for name, arg in (("JAX_NUM_PROCESSES", "num_processes"), ("JAX_PROCESS_ID", "process_id")):
+        raw = os.environ.get(name)
+        if raw is not None:
+            if not raw.isdigit():
+                raise ConfigError(f"{name}={raw!r} must be a non-negative integer")
+            counts[arg] = int(raw)
+    jax.distributed.initialize(**counts)
     return True
 
 
@@ -144,3 +153,9 @@ def to_host(x):
 def is_main_process() -> bool:
     """Process 0 writes the files that are not checkpoints (orbax coordinates those)."""
     return jax.process_index() == 0
+
+
+def barrier(name: str) -> None:
+    """Wait until every process gets here (nothing to do with one process)."""
+    if jax.process_count() > 1:
+        multihost_utils.sync_global_devices(name)

@@ -20,8 +20,8 @@ from lazyq_jax.checkpoint import latest_cycle, load_checkpoint, save_checkpoint
 from lazyq_jax.config import Config, to_dict
 from lazyq_jax.data import DatasetError, collect, dataset_summary, load_dataset, save_dataset
 from lazyq_jax.neighbours import find_neighbours
-from lazyq_jax.parallel import (check_divisible, is_main_process, make_mesh, put, replicated,
-                                to_host)
+from lazyq_jax.parallel import (barrier, check_divisible, is_main_process, make_mesh, put,
+                                replicated, to_host)
 from lazyq_jax.train import make_train_for
 from lazyq_jax.types import Transitions
 
@@ -126,7 +126,9 @@ def fit(config: Config, run_dir: str | Path, *, resume: bool = False, overwrite:
             restored, _ = load_checkpoint(ckpt_dir, expect=config,  # refuses a mismatch early
                                           sharding=replicated(mesh))
         elif overwrite:
-            shutil.rmtree(ckpt_dir)
+            if is_main_process():
+                shutil.rmtree(ckpt_dir)
+            barrier("overwrite")
         else:
             raise RunDirError(f"{run_dir} already holds checkpoints of a run; continue it with "
                               "--resume, replace it with --overwrite, or pick another --run-dir")

@@ -120,8 +120,11 @@ class PushEnv:
         self.config = config
         self.mj_model = load_mj_model(config)
         # The JAX implementation, explicitly: runs on CPU and GPU without warp.
-        self.mjx_model = mjx.put_model(self.mj_model, impl="jax")
-        self._data0 = mjx.make_data(self.mjx_model, impl="jax")
+        # On this process's first device: with several processes, jax.devices()[0] may
+        # belong to another one.
+        device = jax.local_devices()[0]
+        self.mjx_model = mjx.put_model(self.mj_model, device=device, impl="jax")
+        self._data0 = mjx.make_data(self.mjx_model, device=device, impl="jax")
         self.dtype = jnp.float64 if _x64() else jnp.float32
 
     def reset(self, finger_xy: jax.Array, disk_xy: jax.Array | None = None) -> PushState:
