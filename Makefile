@@ -32,6 +32,7 @@ bench: $(STAMP)
 	$(PY) experiments/bench_neighbours.py
 	$(PY) experiments/bench_lstsq.py
 	$(PY) experiments/bench_train.py
+	$(PY) experiments/bench_devices.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info

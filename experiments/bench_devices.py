@@ -4,18 +4,20 @@ For each device count (default 1 and 2) a fresh process (``XLA_FLAGS`` must be s
 before JAX starts) runs the phases of ``make train`` on the same config and seed:
 
 * collection: :func:`lazyq_jax.collect` over the mesh (first call incl. compile, then
-  the same collection again: steady state);
+  the same collection again: steady state, the compiled kernel is cached);
 * neighbour search: :func:`lazyq_jax.pipeline.neighbours_for` on that dataset
   (first, then steady);
 * training: one jitted cycle of :func:`lazyq_jax.train.make_train` (``epochs``
   epochs + targets; first incl. compile, then the median of ``--cycles`` more).
 
-All counts run in the same invocation, one after the other; the parent prints a table
-with the speed-up of each count over the first and checks that the datasets and the
-neighbourhoods are bitwise equal.  Whole ``make train`` timings are a separate
+All counts run in the same invocation, one after the other, ``--repeats`` times in
+alternating order (1, 2, 1, 2, ...: this machine's speed drifts by 10-30 %); the parent
+prints the median of every phase, the speed-up of each count over the first, and
+checks that the datasets and the neighbourhoods are bitwise equal.  Whole ``make train`` timings are a separate
 command (see the README): ``LAZYQ_HOST_DEVICES=N make train``.
 
     .venv/bin/python experiments/bench_devices.py [--devices 1 2] [--preset paper] [--cycles 2]
+                                                  [--repeats 2]
 """
 
 from __future__ import annotations
@@ -78,6 +80,7 @@ def main():
     ap.add_argument("--devices", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--preset", default="paper")
     ap.add_argument("--cycles", type=int, default=2, help="steady training cycles to time")
+    ap.add_argument("--repeats", type=int, default=2, help="processes per device count")
     ap.add_argument("--worker", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--out", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -86,20 +89,26 @@ def main():
         return
     import numpy as np
 
-    results, files = {}, {}
+    runs, files = {n: [] for n in args.devices}, {}
     with tempfile.TemporaryDirectory() as tmp:
-        for n in args.devices:
-            files[n] = os.path.join(tmp, f"d{n}.npz")
-            proc = subprocess.run([sys.executable, __file__, "--worker", str(n), "--preset",
-                                   args.preset, "--cycles", str(args.cycles), "--out", files[n]],
-                                  check=True, stdout=subprocess.PIPE, text=True)
-            results[n] = json.loads(proc.stdout.strip().splitlines()[-1])
+        for r in range(args.repeats):
+            for n in args.devices:
+                files[n] = os.path.join(tmp, f"d{n}.npz")
+                proc = subprocess.run([sys.executable, __file__, "--worker", str(n), "--preset",
+                                       args.preset, "--cycles", str(args.cycles), "--out", files[n]],
+                                      check=True, stdout=subprocess.PIPE, text=True)
+                runs[n].append(json.loads(proc.stdout.strip().splitlines()[-1]))
+                print(f"repeat {r + 1}, {n} device(s): " + ", ".join(
+                    f"{k} {v:.2f}" for k, v in runs[n][-1].items()), flush=True)
         ref = np.load(files[args.devices[0]])
         for n in args.devices[1:]:
             other = np.load(files[n])
             same = {k: bool(np.array_equal(ref[k], other[k])) for k in ref.files}
             print(f"{n} vs {args.devices[0]} devices: bitwise equal {same}")
+    results = {n: {k: statistics.median(run[k] for run in runs[n]) for k in runs[n][0]}
+               for n in args.devices}
     base = results[args.devices[0]]
+    print(f"\nmedians of {args.repeats} process(es) per device count")
     print(f"\n{'phase':<20}" + "".join(f"{f'{n} dev (s)':>12}" for n in args.devices)
           + "".join(f"{f'x{n}/{args.devices[0]}':>10}" for n in args.devices[1:]))
     for name in base:

@@ -8,11 +8,12 @@ The public API, re-exported here (see the README's API tour):
   :func:`greedy_action` (Eq. 9), :func:`lazy_target` (Eq. 7/8), :func:`dataset_targets` (Eq. 11-14)
 * learning (§IV-E): :func:`make_train`, :func:`save_checkpoint`, :func:`load_checkpoint`
 * acting (§V-B): :func:`make_lazy_policy`, :func:`lazy_policy`, :func:`evaluate_run`
+* devices: :func:`make_mesh` (pass ``mesh=`` to ``collect``, ``find_neighbours``, ``make_train``)
 """
 
 from lazyq_jax.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from lazyq_jax.config import (CollectConfig, Config, ConfigError, EvalConfig, NeighbourConfig,
-                              PushConfig, TrainConfig, override, preset)
+                              ParallelConfig, PushConfig, TrainConfig, override, preset)
 from lazyq_jax.data import DatasetError, collect, dataset_summary, load_dataset, save_dataset
 from lazyq_jax.env import PushEnv, PushState, push_reward
 from lazyq_jax.evaluate import evaluate_run, protocol_a, protocol_b
@@ -21,6 +22,7 @@ from lazyq_jax.local_model import (apply_projection, fit_local_linear, greedy_ac
 from lazyq_jax.neighbours import (GridIndex, Neighbours, build_index, check_found, find_neighbours,
                                   query_neighbours, search_all)
 from lazyq_jax.networks import ValueNetwork
+from lazyq_jax.parallel import make_mesh
 from lazyq_jax.pipeline import fit
 from lazyq_jax.policy import LazyPolicy, lazy_policy, make_lazy_policy
 from lazyq_jax.targets import (TargetDiagnostics, bootstrap_table, bootstrap_values, dataset_targets,
@@ -32,12 +34,12 @@ __version__ = "0.1.0"
 
 __all__ = [
     "CheckpointError", "CollectConfig", "Config", "ConfigError", "DatasetError", "EvalConfig",
-    "GridIndex", "LazyPolicy", "NeighbourConfig", "Neighbours", "PushConfig", "PushEnv",
+    "GridIndex", "LazyPolicy", "NeighbourConfig", "Neighbours", "ParallelConfig", "PushConfig", "PushEnv",
     "PushState", "TargetDiagnostics", "TrainConfig", "TrainState", "Transitions", "ValueNetwork",
     "apply_projection", "bootstrap_table", "bootstrap_values", "build_index", "check_found", "collect",
     "dataset_summary", "dataset_targets", "double_dqn_target", "local_fits", "evaluate_in_batches", "evaluate_run", "find_neighbours",
     "fit", "fit_local_linear", "greedy_action", "lazy_policy", "lazy_target", "load_checkpoint",
-    "load_dataset", "make_lazy_policy", "make_train", "make_train_for", "override", "precompute_projection",
+    "load_dataset", "make_lazy_policy", "make_mesh", "make_train", "make_train_for", "override", "precompute_projection",
     "preset", "protocol_a", "protocol_b", "push_reward", "query_neighbours", "safe_norm",
     "save_checkpoint", "save_dataset", "search_all",
 ]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import math
 import os
@@ -71,6 +72,16 @@ def _episode_keys(key: jax.Array, first: int, count: int) -> jax.Array:
     return jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.arange(first, first + count))
 
 
+@functools.lru_cache(maxsize=8)
+def _collector(config: CollectConfig, mesh: Mesh | None):
+    """The jitted batch of episodes, kept so that collecting again does not recompile."""
+    episodes = jax.vmap(make_episode_fn(PushEnv(config.push), config))
+    if mesh is not None:  # no collectives: each device simulates its own chunk
+        episodes = jax.shard_map(episodes, mesh=mesh, in_specs=P(AXIS), out_specs=P(AXIS),
+                                 check_vma=False)
+    return jax.jit(episodes)
+
+
 def collect(key: jax.Array, config: CollectConfig = CollectConfig(), *, mesh: Mesh | None = None,
             progress: bool = True) -> Transitions:
     """Simulate the random pushes of §V-A-3 in jitted MJX batches and relabel for many goals.
@@ -104,11 +115,7 @@ def collect(key: jax.Array, config: CollectConfig = CollectConfig(), *, mesh: Me
     parts = []
     bar = tqdm(total=n, desc="collect (episodes)", unit="ep", disable=not progress, leave=False)
     with _precision(config.push.float64):
-        episodes = jax.vmap(make_episode_fn(PushEnv(config.push), config))
-        if mesh is not None:  # no collectives: each device simulates its own chunk
-            episodes = jax.shard_map(episodes, mesh=mesh, in_specs=P(AXIS), out_specs=P(AXIS),
-                                     check_vma=False)
-        run = jax.jit(episodes)
+        run = _collector(config, mesh)
         for c in range(n_calls):
             keys = put(_episode_keys(key, c * per_call, per_call), sharded(mesh))
             out = to_host(run(keys))

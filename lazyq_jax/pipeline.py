@@ -16,7 +16,7 @@ import numpy as np
 from jax.sharding import Mesh
 from tqdm.auto import tqdm
 
-from lazyq_jax.checkpoint import latest_cycle, load_checkpoint, save_checkpoint
+from lazyq_jax.checkpoint import CheckpointError, latest_cycle, load_checkpoint, save_checkpoint
 from lazyq_jax.config import Config, to_dict
 from lazyq_jax.data import DatasetError, collect, dataset_summary, load_dataset, save_dataset
 from lazyq_jax.neighbours import find_neighbours
@@ -111,8 +111,8 @@ def fit(config: Config, run_dir: str | Path, *, resume: bool = False, overwrite:
     ``resume=True`` continues from the newest checkpoint in ``run_dir`` (or starts
     afresh if there is none) and ends with the same parameters as an uninterrupted
     run with the same config; a checkpoint of an incompatible config is refused
-    before anything in ``run_dir`` is touched.  Without ``resume``, existing
-    checkpoints are refused unless ``overwrite=True`` (which deletes them).
+    before anything in ``run_dir`` is touched.  ``overwrite=True`` deletes existing
+    checkpoints (it wins over ``resume``); with neither, they are refused.
     Every phase runs on the devices of ``config.parallel`` (:func:`mesh_for`).
     Returns ``(state, trainer, data)``.
     """
@@ -122,13 +122,17 @@ def fit(config: Config, run_dir: str | Path, *, resume: bool = False, overwrite:
     metrics_path = run_dir / "metrics.jsonl"
     restored = None
     if latest_cycle(ckpt_dir) is not None:
-        if resume:
-            restored, _ = load_checkpoint(ckpt_dir, expect=config,  # refuses a mismatch early
-                                          sharding=replicated(mesh))
-        elif overwrite:
+        if overwrite:  # wins over resume: `make train` always passes --resume
             if is_main_process():
                 shutil.rmtree(ckpt_dir)
             barrier("overwrite")
+        elif resume:
+            try:
+                restored, _ = load_checkpoint(ckpt_dir, expect=config,  # refuses a mismatch early
+                                              sharding=replicated(mesh))
+            except CheckpointError as e:
+                raise CheckpointError(f"{e}; to start this run afresh, pass --overwrite "
+                                      "(make train ARGS=--overwrite)") from e
         else:
             raise RunDirError(f"{run_dir} already holds checkpoints of a run; continue it with "
                               "--resume, replace it with --overwrite, or pick another --run-dir")

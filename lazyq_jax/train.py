@@ -163,7 +163,7 @@ def make_train(config: TrainConfig, action_length: float, *, state_scale: float 
                                               config.clip)
             state, loss = epoch(state, data, y, k)
             if progress is not None:
-                jax.debug.callback(progress, e, ordered=True)
+                jax.debug.callback(progress, e)  # ordered=True needs a single device
             stats = (jnp.mean(y), jnp.std(y), jnp.mean(active.astype(jnp.float32)))
             return state, (loss, stats)
 

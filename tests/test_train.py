@@ -122,6 +122,11 @@ def test_run_directory_is_not_overwritten_by_accident(tmp_path):
     assert (tmp_path / "dataset.npz").read_bytes() == dataset
     state, _, _ = fit(small, tmp_path, overwrite=True, progress=False)
     assert int(state.cycle) == 1
+    # --overwrite wins over --resume (make train always passes --resume): an incompatible
+    # checkpoint is replaced, not refused
+    wider = override(small, ["train.width=24"])
+    state, _, _ = fit(wider, tmp_path, resume=True, overwrite=True, progress=False)
+    assert int(state.cycle) == 1 and state.params["Dense_0"]["kernel"].shape[-1] == 24
 
 
 def test_train_is_task_agnostic():
