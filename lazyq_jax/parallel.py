@@ -6,12 +6,13 @@ with axis ``"data"``:
 * collection and the neighbour search use ``jax.shard_map``: every device runs the
   *same* per-device program on its block of episodes / queries, so the results are
   bitwise the same for any device count (the plain SPMD partitioner lowers a
-  differently-sized program, which the contact dynamics amplify to ~1e-4);
-* targets and training use ``jit`` with sharding constraints: the minibatch rows
-  are split over ``"data"`` and parameters are replicated, so XLA inserts the
-  all-reduces of the gradient and of the batch-norm statistics itself (batch norm
-  is *synchronised*: mean and variance are those of the whole global batch, as on
-  one device).
+  differently-shaped program, which the contact dynamics amplified to 3e-4);
+* training runs each epoch in ``shard_map``: parameters are replicated, every device
+  takes its share of each minibatch, and ``pmean`` averages the gradients, the loss
+  and the batch-norm statistics (synchronised batch norm: the statistics of the
+  whole minibatch, as on one device);
+* the targets use ``jit`` with sharding constraints (value chunks split over the
+  devices, fits split by rows).
 
 ``mesh=None`` anywhere means "no sharding annotations": the single-device code path.
 """
