@@ -33,7 +33,7 @@ def main():
         run_dir.mkdir(parents=True, exist_ok=True)
         if dataset is not None and not (run_dir / "dataset.npz").exists():
             shutil.copy(dataset, run_dir / "dataset.npz")
-        fit(config, run_dir, progress=False)
+        fit(config, run_dir, overwrite=True, progress=False)  # a study starts afresh
         dataset = run_dir / "dataset.npz"
         results = evaluate_run(run_dir, figures=False)
         timings = json.loads((run_dir / "timings.json").read_text())

@@ -18,7 +18,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from lazyq_jax.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
-from lazyq_jax.config import CollectConfig, ConfigError, Config, TrainConfig  # noqa: E402
+from lazyq_jax.config import (CollectConfig, Config, ConfigError, ParallelConfig,  # noqa: E402
+                              TrainConfig)
 from lazyq_jax.data import collect  # noqa: E402
 from lazyq_jax.neighbours import build_index, search_all  # noqa: E402
 from lazyq_jax.parallel import make_mesh, put, replicated  # noqa: E402
@@ -108,6 +109,11 @@ def check_checkpoint_moves_between_device_counts(state):
     print("checkpoint: saved from 4 devices, restored bitwise on 1 and on 2")
 
 
+def check_default_mesh():
+    assert make_mesh().size == 4 == make_mesh(ParallelConfig()).size
+    print("mesh: by default all 4 devices")
+
+
 def check_errors():
     for call, match in ((lambda: make_mesh(5), "only 4 cpu device"),
                         (lambda: make_train(TrainConfig(batch_size=66), 0.1, mesh=MESHES[4]),
@@ -128,5 +134,6 @@ if __name__ == "__main__":
     check_search_bitwise()
     state = check_training_close(data)
     check_checkpoint_moves_between_device_counts(state)
+    check_default_mesh()
     check_errors()
     print("all multi-device checks passed")
