@@ -380,17 +380,18 @@ def _search(index: GridIndex, seed, qx, qy, qg, *, lo: int, hi: int, n_items: in
 
 
 @partial(jax.jit, static_argnames=("lo", "hi", "n_items", "steps", "mesh"), donate_argnums=(5,))
-def _pass(index: GridIndex, seeds, qs, qg, sub, out, *, lo, hi, n_items, steps, mesh=None):
+def _pass(index: GridIndex, key, qs, qg, sub, out, *, lo, hi, n_items, steps, mesh=None):
     """One :func:`_search` on the queries ``sub`` (indices), written into ``out = (idx, level, count)``.
 
     Padding entries of ``sub`` are ``Q`` (out of range): they search a copy of query
     ``Q - 1`` and their results are dropped, so every output row has one writer.
-    ``seeds[Q]`` holds every query's random bits, so a query's sample does not depend
-    on which other queries share its pass.  With a ``mesh``, ``sub`` is split into one
+    Query ``q`` draws its random bits as ``bits(key, (Q,))[q]``, so its sample does not
+    depend on which other queries share its pass.  With a ``mesh``, ``sub`` is split into one
     contiguous block per device (``shard_map``; the index is replicated) and
     ``n_items`` counts the items of one block.
     """
     read = jnp.minimum(sub, qs.shape[0] - 1)
+    seeds = jax.random.bits(key, (qs.shape[0],), jnp.uint32)
     search = partial(_search, lo=lo, hi=hi, n_items=n_items, steps=steps)
     if mesh is not None:
         search = jax.shard_map(search, mesh=mesh, in_specs=(P(), *[P(AXIS)] * 4),
@@ -491,8 +492,7 @@ def search_all(index: GridIndex, key, query_s, query_g, *, mesh: Mesh | None = N
         sub_j = jnp.asarray(sub)
         read = jnp.minimum(sub_j, n_q - 1)
         n_it = np.asarray(_items_per_query(index, qs_j[read, 0], qs_j[read, 1], qg_j[read], level=hi))
-        seeds = jax.random.bits(jax.random.fold_in(key, p), (n_q,), jnp.uint32)
-        out = _pass(index, seeds, qs_j, qg_j, sub_j, out, lo=lo, hi=hi,
+        out = _pass(index, jax.random.fold_in(key, p), qs_j, qg_j, sub_j, out, lo=lo, hi=hi,
                     n_items=_bucket(n_it.reshape(d, -1).sum(axis=1).max()),
                     steps=int(n_it.max()).bit_length(), mesh=mesh)
         pending = pending[to_host(out[1])[pending] < 0]

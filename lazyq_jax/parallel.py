@@ -114,9 +114,9 @@ def replicated(mesh: Mesh | None):
     return None if mesh is None else NamedSharding(mesh, P())
 
 
-def sharded(mesh: Mesh | None, *spec):
-    """``NamedSharding(mesh, P("data", *spec))``, or ``None`` without a mesh."""
-    return None if mesh is None else NamedSharding(mesh, P(AXIS, *spec))
+def sharded(mesh: Mesh | None):
+    """``NamedSharding(mesh, P("data"))`` (split along the first axis), or ``None``."""
+    return None if mesh is None else NamedSharding(mesh, P(AXIS))
 
 
 def constrain(x, sharding):
@@ -135,8 +135,11 @@ def put(x, sharding):
         return x
     if jax.process_count() == 1:
         return jax.device_put(x, sharding)
-    return jax.tree.map(lambda leaf: jax.make_array_from_callback(
-        np.shape(leaf), sharding, lambda index: np.asarray(leaf)[index]), x)
+    def one(leaf):
+        host = np.asarray(leaf)
+        return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
+
+    return jax.tree.map(one, x)
 
 
 def to_host(x):

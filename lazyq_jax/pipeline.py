@@ -20,9 +20,8 @@ from lazyq_jax.checkpoint import CheckpointError, latest_cycle, load_checkpoint,
 from lazyq_jax.config import Config, to_dict
 from lazyq_jax.data import DatasetError, collect, dataset_summary, load_dataset, save_dataset
 from lazyq_jax.neighbours import find_neighbours
-from lazyq_jax.parallel import (barrier, check_divisible, is_main_process, make_mesh, put,
-                                replicated, to_host)
-from lazyq_jax.train import make_train_for
+from lazyq_jax.parallel import barrier, is_main_process, make_mesh, put, replicated, to_host
+from lazyq_jax.train import check_mesh, make_train_for
 from lazyq_jax.types import Transitions
 
 
@@ -99,8 +98,7 @@ def mesh_for(config: Config) -> Mesh:
     or a batch size the device count does not divide.
     """
     mesh = make_mesh(config.parallel)
-    check_divisible("train.batch_size", config.train.batch_size, mesh)
-    check_divisible("train.target_batch_size", config.train.target_batch_size, mesh)
+    check_mesh(config.train, mesh)  # before the collection, not only when training starts
     return mesh
 
 

@@ -63,6 +63,12 @@ class Trainer(NamedTuple):
     value_fn: Callable  # value_fn(state) -> V(s[B, 2], g[B]) in inference mode
 
 
+def check_mesh(config: TrainConfig, mesh: Mesh | None) -> None:
+    """:class:`ConfigError` unless the device count divides both batch sizes."""
+    check_divisible("train.batch_size", config.batch_size, mesh)
+    check_divisible("train.target_batch_size", config.target_batch_size, mesh)
+
+
 def make_train(config: TrainConfig, action_length: float, *, state_scale: float = 1.0,
                progress: Callable[[int], None] | None = None, mesh: Mesh | None = None) -> Trainer:
     """Build the pure training functions for ``config`` (see module docstring).
@@ -83,8 +89,7 @@ def make_train(config: TrainConfig, action_length: float, *, state_scale: float 
     """
     if not isinstance(config, TrainConfig):
         raise TypeError(f"make_train needs a TrainConfig, got {type(config).__name__}")
-    check_divisible("train.batch_size", config.batch_size, mesh)
-    check_divisible("train.target_batch_size", config.target_batch_size, mesh)
+    check_mesh(config, mesh)
     d = mesh_size(mesh)
     network = ValueNetwork(width=config.width, depth=config.depth, state_scale=state_scale)
     # The training forward pass of one device's share (batch norm synchronised over the mesh).
