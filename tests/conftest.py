@@ -8,7 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from lazyq_jax.config import CollectConfig, Config, EvalConfig, PushConfig, TrainConfig
+from lazyq_jax.config import (FORGIVING_PUSH, CollectConfig, Config, EvalConfig, PushConfig,
+                              TrainConfig)
 from lazyq_jax.env import PushEnv
 
 PUSH_BATCH = 16
@@ -19,9 +20,9 @@ def env() -> PushEnv:
     return PushEnv(PushConfig())
 
 
-@pytest.fixture(scope="session")
-def push(env):
-    """``push(finger[B,2], action[B,2], disk[B,2]=0) -> (finger_after, disk_delta)`` as NumPy."""
+def batched_push(env: PushEnv):
+    """``push(finger[B,2], action[B,2], disk[B,2]=0) -> (finger_after, disk_delta)`` as NumPy,
+    padded to one compiled batch of :data:`PUSH_BATCH`."""
     step = jax.jit(jax.vmap(env.step))
 
     def run(finger, action, disk=None):
@@ -36,6 +37,18 @@ def push(env):
         return np.asarray(nxt.finger_xy)[:n], np.asarray(delta)[:n]
 
     return run
+
+
+@pytest.fixture(scope="session")
+def push(env):
+    """Pushes in the paper's world (the default PushConfig)."""
+    return batched_push(env)
+
+
+@pytest.fixture(scope="session")
+def push_forgiving():
+    """Pushes in the forgiving world (quadratic drag, preset ``forgiving``)."""
+    return batched_push(PushEnv(FORGIVING_PUSH))
 
 
 # A small but real push run: dense data near the disk so a few cycles propagate value.

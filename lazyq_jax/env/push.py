@@ -55,12 +55,31 @@ def load_mj_model(config: PushConfig = PushConfig()) -> mujoco.MjModel:
     model.body_inertia[body] *= scale
     model.dof_damping[joint("disk_x")] = config.damping
     model.dof_damping[joint("disk_y")] = config.damping
-    model.opt.density = config.anisotropy
+    # "fluid": MuJoCo's quadratic drag; "coulomb": set per substep by PushEnv.step.
+    model.opt.density = config.anisotropy if config.friction == "fluid" else 0.0
     model.pair_solref[0] = (config.contact_timeconst, config.contact_dampratio)
     model.opt.timestep = config.timestep
     model.opt.iterations = config.solver_iterations
     model.opt.ls_iterations = config.ls_iterations
     return model
+
+
+def coulomb_friction(qvel, config: PushConfig):
+    """The ``"coulomb"`` friction of the disk per slide joint (x, y), linearised at ``qvel``.
+
+    ``F(v) = -mu v / sqrt(v^2 + eps^2) - damping v`` with ``mu = friction_coefficient``
+    and ``eps = friction_smoothing``: Coulomb friction per table axis (smoothed below
+    speed ``eps``) plus viscous damping.  Returns ``(damping, force)``
+    with ``damping = -dF/dv`` (MuJoCo's Euler integrator treats joint damping
+    implicitly) and ``force = F(v) + (damping - config.damping) v`` (applied
+    explicitly), so that one step integrates ``F(v_new) ~ F(v) + F'(v) (v_new - v)``:
+    stable for any ``mu / eps``.  Works on NumPy and JAX arrays.
+    """
+    mu, eps = config.friction_coefficient, config.friction_smoothing
+    q = qvel * qvel + eps * eps
+    root = q ** 0.5
+    tangent = mu * eps * eps / (q * root)
+    return config.damping + tangent, -mu * qvel * qvel * qvel / (q * root)
 
 
 def finger_path(start_xy: jax.Array, action: jax.Array, config: PushConfig) -> jax.Array:
@@ -176,10 +195,16 @@ class PushEnv:
         action = normalize_action(action, self.config.action_length)
         path = finger_path(state.finger_xy.astype(dtype), action.astype(dtype), self.config)
         data = self._data0.replace(qpos=state.disk_xy.astype(dtype))
+        coulomb = self.config.friction == "coulomb"
 
         def substep(data, finger_xy):
-            mocap = jnp.concatenate([finger_xy, jnp.zeros(1, dtype)])[None]
-            return mjx.step(self.mjx_model, data.replace(mocap_pos=mocap)), None
+            model = self.mjx_model
+            data = data.replace(mocap_pos=jnp.concatenate([finger_xy, jnp.zeros(1, dtype)])[None])
+            if coulomb:  # this substep's linearisation (see coulomb_friction)
+                damping, force = coulomb_friction(data.qvel, self.config)
+                model = model.replace(dof_damping=damping)
+                data = data.replace(qfrc_applied=force)
+            return mjx.step(model, data), None
 
         data, _ = jax.lax.scan(substep, data, path)
         disk = data.qpos[:2].astype(jnp.float32)
