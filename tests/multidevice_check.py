@@ -73,25 +73,54 @@ def check_training_close(data):
     ref_v = np.asarray(ref_tr.value_fn(ref_state)(data.s, data.g))
     ref_fits = local_fits(ref_tr.value_fn(state0), data, idx, gamma=0.9, batch_size=128)
     moved = max(np.abs(a - b).max() for a, b in zip(leaves(ref_state.params), leaves(state0.params)))
+    # ||grad_theta V(s, g)||_1, the largest over the data (for the V tolerance below)
+    variables = {"batch_stats": ref_state.batch_stats}
+    v_one = lambda p, s, g: ref_tr.network.apply({**variables, "params": p}, s[None], g[None])[0]
+    grads = jax.vmap(jax.grad(v_one), in_axes=(None, 0, 0))(ref_state.params, data.s, data.g)
+    grad_l1 = float(sum(np.abs(np.asarray(x)).reshape(data.size, -1).sum(1) for x in
+                        jax.tree.leaves(grads)).max())
     for n in (2, 4):
         mesh = MESHES[n]
         tr = make_train(cfg, 0.1, mesh=mesh)
         state, metrics = jax.jit(tr.run_cycle)(put(state0, replicated(mesh)),
                                                put(data, replicated(mesh)), idx)
+        # Tolerances from what is compared (not from one machine):
+        # * parameters: Adam moves each by at most ~lr per step, so gradients that differ by a
+        #   relative rho give parameters within lr * steps * rho.  Reduction order changes
+        #   gradients by rho ~ 1e-6; a wrong shard or unsynchronised batch norm by rho ~ 1
+        #   (the latter measured at 1.3e-2 here).  The bound takes rho = 1e-3.
+        steps = cfg.epochs * (data.size // cfg.batch_size)
+        bound = cfg.learning_rate * steps * 1e-3
         diff = max(np.abs(a - b).max() for a, b in zip(leaves(ref_state), leaves(state)))
-        assert diff < 1e-5, f"{n} devices: parameters differ by {diff:.2e} after one cycle"
+        assert diff < bound, f"{n} devices: state differs by {diff:.2e} > {bound:.1e} after one cycle"
+        # * V: to first order |dV| <= ||grad_theta V||_1 * max|d theta| (x2 for second order).
         v = np.asarray(tr.value_fn(state)(data.s, data.g))
         v_diff = np.abs(v - ref_v).max()
-        assert v_diff < 1e-5, f"{n} devices: V differs by {v_diff:.2e} after one cycle"
+        v_bound = 2 * grad_l1 * max(diff, 1e-12) + 1e-6 * np.abs(ref_v).max()
+        assert v_diff < v_bound, f"{n} devices: V differs by {v_diff:.2e} > {v_bound:.1e}"
+        # * the loss: a float32 mean over ~26 minibatch means of 64 rows: relative rounding
+        #   <= ~100 ulp = 1e-5; rtol 1e-4.
         np.testing.assert_allclose(metrics["loss"], ref_metrics["loss"], rtol=1e-4)
+        # * local fits: compare the fitted values alpha + beta.a_j at the neighbours' actions,
+        #   not beta (nearly collinear actions make beta ill-conditioned: a 1e-7 change of y
+        #   moved one beta by 1.5e-6 on another machine).  The fit is a projection H of the
+        #   neighbours' values y (||H|| <= 1), so the fitted values differ by at most
+        #   ||dy||_2 <= sqrt(k) max|dy|, plus float32 rounding of the fit (1e-5 of max|y|).
         fits = jax.jit(lambda d, i: local_fits(tr.value_fn(state0), d, i, gamma=0.9,
                                                batch_size=128, mesh=mesh))(
             put(data, replicated(mesh)), idx)
-        for a, b in zip(leaves(ref_fits), leaves(fits)):
-            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
-        print(f"train: one cycle ({2 * (data.size // 64)} Adam steps) on {n} devices: parameters, "
-              f"batch statistics and Adam moments within {diff:.1e} of one device (training "
-              f"moved them by up to {moved:.2f}), V within {v_diff:.1e}; local fits within 1e-5")
+        fitted = lambda f: np.asarray(f[0])[:, None] + np.einsum(
+            "na,nka->nk", np.asarray(f[1]), np.asarray(data.a)[np.asarray(idx)])
+        dy = np.abs(np.asarray(fits[2]) - np.asarray(ref_fits[2])).max()
+        y_max = np.abs(np.asarray(ref_fits[2])).max()
+        assert dy <= 1e-5 * y_max, f"{n} devices: neighbour values differ by {dy:.2e}"
+        fit_diff = np.abs(fitted(fits) - fitted(ref_fits)).max()
+        fit_bound = np.sqrt(idx.shape[1]) * dy + 1e-5 * y_max
+        assert fit_diff <= fit_bound, f"{n} devices: fitted values differ by {fit_diff:.2e} > {fit_bound:.1e}"
+        print(f"train: one cycle ({steps} Adam steps) on {n} devices: parameters, batch "
+              f"statistics and Adam moments within {diff:.1e} (bound {bound:.1e}; training "
+              f"moved them by up to {moved:.2f}), V within {v_diff:.1e} (bound {v_bound:.1e}); "
+              f"fitted local values within {fit_diff:.1e} (bound {fit_bound:.1e})")
     return state
 
 
