@@ -10,7 +10,10 @@ STAMP := $(VENV)/.installed
 RUN ?= runs/paper
 ARGS ?=
 
-.PHONY: train test bench eval clean
+SEEDS ?= 8
+STUDY ?= runs/study_paper
+
+.PHONY: train test bench eval study clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -20,6 +23,9 @@ $(STAMP): pyproject.toml
 
 train: $(STAMP)
 	$(PY) -m lazyq_jax train --run-dir $(RUN) --resume $(ARGS)
+
+study: $(STAMP)
+	$(PY) -m lazyq_jax study --preset paper --seeds $(SEEDS) --run-dir $(STUDY) --resume $(ARGS)
 
 eval: $(STAMP)
 	$(PY) -m lazyq_jax evaluate --run-dir $(RUN) $(ARGS)

@@ -1,6 +1,8 @@
 """``python -m lazyq_jax collect|train ...``: parse, then call library functions.
 
 Any config field can be overridden: ``--set train.width=128 --set seed=3``.
+Compiled programs are cached on disk (``LAZYQ_COMPILE_CACHE``, see
+:func:`lazyq_jax.parallel.enable_compilation_cache`), so a second run compiles little.
 Devices: ``--set parallel.devices=N`` (default all), ``LAZYQ_HOST_DEVICES=N`` for N
 CPU devices, ``--set parallel.distributed=true`` or ``LAZYQ_DISTRIBUTED=1`` on a cluster.
 """
@@ -17,7 +19,8 @@ from lazyq_jax.checkpoint import CheckpointError, load_checkpoint
 from lazyq_jax.config import PRESETS, Config, ConfigError, override, preset, to_dict
 from lazyq_jax.data import DatasetError
 from lazyq_jax.evaluate import EvalError, evaluate_run
-from lazyq_jax.parallel import force_host_devices, is_main_process, maybe_initialize_distributed
+from lazyq_jax.parallel import (enable_compilation_cache, force_host_devices, is_main_process,
+                                maybe_initialize_distributed)
 from lazyq_jax.pipeline import RunDirError, fit, mesh_for, prepare_dataset
 
 
@@ -74,6 +77,19 @@ def _evaluate(run_dir: Path, assignments: list[str], figures: bool = True) -> No
         print(f"figures: {run_dir / 'figures'}")
 
 
+def cmd_study(args) -> None:
+    from lazyq_jax.study import run_study
+
+    config = _config(args)
+    run_dir = args.run_dir or Path("runs") / f"study_{args.preset}"
+    if args.seeds < 1:
+        raise ConfigError(f"--seeds must be >= 1, got {args.seeds}")
+    seeds = list(range(args.first_seed, args.first_seed + args.seeds))
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    run_study(config, run_dir, seeds=seeds, methods=methods, resume=args.resume,
+              overwrite=args.overwrite, progress=not args.no_progress)
+
+
 def cmd_evaluate(args) -> None:
     _evaluate(args.run_dir, args.set or [], figures=not args.no_figures)
 
@@ -92,6 +108,16 @@ def main(argv: list[str] | None = None) -> int:
                    help="delete the run directory's checkpoints and train afresh")
     p.add_argument("--no-eval", action="store_true", help="skip the evaluation after training")
     p.set_defaults(func=cmd_train)
+    p = sub.add_parser("study", help="the whole pipeline for several seeds at once; mean and 95 %% CI "
+                       "per method -> RUN_DIR/results.json, summary.md, figures/")
+    _add_common(p)
+    p.add_argument("--seeds", type=int, default=8, help="number of seeds (default 8)")
+    p.add_argument("--first-seed", type=int, default=0,
+                   help="seeds are first-seed .. first-seed + seeds - 1 (default 0)")
+    p.add_argument("--methods", default="lazy", help="comma-separated methods (default lazy)")
+    p.add_argument("--resume", action="store_true", help="continue the study in --run-dir")
+    p.add_argument("--overwrite", action="store_true", help="delete the study in --run-dir first")
+    p.set_defaults(func=cmd_study)
     for name in ("evaluate", "plot"):
         p = sub.add_parser(name, help="reload a finished run; run both evaluation protocols; write "
                            "eval/results.json and figures/" if name == "evaluate" else
@@ -108,6 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         force_host_devices()  # LAZYQ_HOST_DEVICES, before JAX starts its backends
+        enable_compilation_cache()
         args.func(args)
     except ConfigError as e:
         parser.exit(2, f"config error: {e}\n")

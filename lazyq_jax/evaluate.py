@@ -4,21 +4,23 @@ episodes and run inside ``lax.scan`` with done masks."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from pathlib import Path
-from typing import Callable, NamedTuple
+from typing import Callable, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from lazyq_jax.checkpoint import CheckpointError, load_checkpoint
-from lazyq_jax.config import EvalConfig, to_dict
+from lazyq_jax.config import EvalConfig, PushConfig, to_dict
 from lazyq_jax.data import load_dataset
 from lazyq_jax.env import PushEnv, PushState, disk_moved, sample_outside_disk
 from lazyq_jax.policy import LazyPolicy, lazy_policy, make_lazy_policy
-from lazyq_jax.pipeline import purpose_key
+from lazyq_jax.parallel import over_seeds
+from lazyq_jax.pipeline import purpose_key, state_bounds
 from lazyq_jax.train import make_train_for
 
 NOT_PUSHED, CORRECT, WRONG = 0, 1, 2
@@ -191,18 +193,47 @@ def load_run(run_dir: Path):
 
 
 def run_policy(config, value_fn, data, max_level: int) -> LazyPolicy:
-    """The lazy policy of a run: its dataset, neighbourhood settings, gamma and trained V."""
+    """The lazy policy of a run: its dataset, neighbourhood settings, gamma and trained V
+    (its grid over :func:`lazyq_jax.pipeline.state_bounds`, as in training)."""
     nc = config.neighbours
     return make_lazy_policy(value_fn, data, gamma=config.train.gamma,
                             action_length=config.collect.push.action_length, k=nc.k,
                             radius_s=nc.radius_s, radius_g=nc.radius_g, growth=nc.growth,
-                            max_level=max_level)
+                            max_level=max_level, bounds=state_bounds(config, data.s))
 
 
 def eval_keys(cfg: EvalConfig) -> tuple[jax.Array, jax.Array]:
     """The keys of protocols A and B for ``cfg.seed``."""
     k_a, k_b = jax.random.split(purpose_key(cfg.seed, "eval"))
     return k_a, k_b
+
+
+def evaluate_stacked(push: PushConfig, cfg: EvalConfig, act_of: Callable, policies,
+                     seeds: Sequence[int]) -> tuple[list[dict], Rollouts, jax.Array]:
+    """Both protocols for several trained agents at once (one per seed), in one program.
+
+    ``policies``: a pytree whose leaves are stacked on a leading seed axis;
+    ``act_of(policy)`` turns one seed's slice into an :data:`Act`.  Seed ``i`` is
+    evaluated with ``eval.seed = seeds[i]``: the same episodes as
+    :func:`evaluate_run` of a run with that evaluation seed.  Protocols A and B are
+    ``vmap``-ed over the seeds.  Returns ``(results per seed, protocol-B rollouts,
+    protocol-B targets)`` (rollouts and targets stacked over seeds).
+    """
+    env = PushEnv(push)  # float32 physics, as evaluate_run
+    keys = [eval_keys(dataclasses.replace(cfg, seed=int(s))) for s in seeds]
+    k_a, k_b = (jnp.stack([k[i] for k in keys]) for i in (0, 1))
+    run_a = over_seeds(lambda p, k: protocol_a(env, act_of(p), k, cfg), len(seeds))
+    run_b = over_seeds(lambda p, k: protocol_b(env, act_of(p), k, cfg, push.table_half_size),
+                       len(seeds))
+    rollouts_a = jax.device_get(run_a(policies, k_a))
+    rollouts_b, targets = jax.device_get(run_b(policies, k_b))
+    per_seed = []
+    for i, seed in enumerate(seeds):
+        pick = lambda tree: jax.tree.map(lambda x: x[i], tree)
+        per_seed.append({"protocol_a": summarize_a(pick(rollouts_a), cfg),
+                         "protocol_b": summarize_b(pick(rollouts_b)), "seed": int(seed),
+                         "eval_config": to_dict(dataclasses.replace(cfg, seed=int(seed)))})
+    return per_seed, rollouts_b, targets
 
 
 def evaluate_run(run_dir: str | Path, eval_config: EvalConfig | None = None, *,

@@ -100,7 +100,7 @@ class GridIndex:
     gs: jax.Array  # wrapped goals
     orig: jax.Array  # int32 [D*N] index of the entry in the original data
     offsets: jax.Array  # int32 [n_g*n_y*n_x + 1] first entry of each cell
-    n_data: int = struct.field(pytree_node=False)
+    n_data: jax.Array  # int32 scalar: number of data points (entries past D*n_data are padding)
     k: int = struct.field(pytree_node=False)
     radius_s: float = struct.field(pytree_node=False)
     radius_g: float = struct.field(pytree_node=False)
@@ -163,12 +163,19 @@ def radius_tables(radius_s, radius_g, growth, levels):
 
 
 def build_index(data_s, data_g, *, k=20, radius_s=0.06, radius_g=0.1, growth=2 ** (1 / 3),
-                max_level=8) -> GridIndex:
+                max_level=8, bounds=None, capacity=None, max_window=None) -> GridIndex:
     """Sort the data into the grid hash (host, NumPy; run once per dataset).
 
     ``max_level`` only bounds :func:`query_neighbours` (static capacities are
     chosen from the data for that many growths); :func:`find_neighbours` grows
     without limit.
+
+    Several datasets share compiled searches when their indices have the same
+    shapes and static fields (as :mod:`lazyq_jax.study` does for its seeds): give
+    them all the same ``bounds = (x_min, y_min, x_max, y_max)`` (covering every
+    dataset's states), ``capacity`` (at least every dataset's size; the entry
+    arrays are padded to it) and ``max_window`` (at least what each would get on
+    its own: its ``max_window`` when built without one).
     """
     _check_params(k, radius_s, radius_g, growth)
     if not isinstance(max_level, (int, np.integer)) or max_level < 0:
@@ -177,16 +184,25 @@ def build_index(data_s, data_g, *, k=20, radius_s=0.06, radius_g=0.1, growth=2 *
     n = s.shape[0]
     if n < k:
         raise ValueError(f"need at least k={k} data points to draw k distinct neighbours, got {n}")
+    capacity = n if capacity is None else int(capacity)
+    if capacity < n:
+        raise ValueError(f"capacity={capacity} is smaller than the {n} data points")
     g = wrap_angle(g)
     x, y = s[:, 0].astype(np.float64), s[:, 1].astype(np.float64)
-    x0, y0 = float(x.min()), float(y.min())
+    if bounds is None:
+        x0, y0, x1, y1 = float(x.min()), float(y.min()), float(x.max()), float(y.max())
+    else:
+        x0, y0, x1, y1 = map(float, bounds)
+        if x.min() < x0 or y.min() < y0 or x.max() > x1 or y.max() > y1:
+            raise ValueError(f"bounds={tuple(bounds)} do not cover the data (x in "
+                             f"[{x.min()}, {x.max()}], y in [{y.min()}, {y.max()}])")
     h_x, h_y = _FX * radius_s * _CELL_SLACK, _FY * radius_s * _CELL_SLACK
     n_g = D * max(1, int(np.floor(2 * np.pi / (D * _FG * radius_g * _CELL_SLACK))))
     # Coarsen x/y cells if the dense offset table would dwarf the data (sparse, wide data).
-    while (int((x.max() - x0) / h_x) + 1) * (int((y.max() - y0) / h_y) + 1) * n_g > max(4 * D * n, 1 << 20):
+    while (int((x1 - x0) / h_x) + 1) * (int((y1 - y0) / h_y) + 1) * n_g > max(4 * D * capacity, 1 << 20):
         h_x, h_y = 2 * h_x, 2 * h_y
-    n_x = int((x.max() - x0) / h_x) + 1
-    n_y = int((y.max() - y0) / h_y) + 1
+    n_x = int((x1 - x0) / h_x) + 1
+    n_y = int((y1 - y0) / h_y) + 1
     ix = np.clip(np.floor((x - x0) / h_x), 0, n_x - 1).astype(np.int64)
     iy = np.clip(np.floor((y - y0) / h_y), 0, n_y - 1).astype(np.int64)
     h_g = 2 * np.pi / n_g
@@ -202,14 +218,21 @@ def build_index(data_s, data_g, *, k=20, radius_s=0.06, radius_g=0.1, growth=2 *
     offsets = np.zeros(n_cells + 1, np.int64)
     np.cumsum(np.bincount(cell, minlength=n_cells), out=offsets[1:])
     # float32 slack for the stencil (>> rounding of coordinates, << the 0.1% cell slack).
-    margin = 2.0**-18 * (max(abs(x0), abs(y0), abs(x.max()), abs(y.max())) + 1.0)
-    max_window = _max_window(offsets, n_x, h_x, radius_s * growth**max_level * (1 + 1e-5) + margin)
+    margin = 2.0**-18 * (max(abs(x0), abs(y0), abs(x1), abs(y1)) + 1.0)
+    own_window = max(_max_window(offsets, n_x, h_x,
+                                 radius_s * growth**max_level * (1 + 1e-5) + margin), 1)
+    if max_window is None:
+        max_window = own_window
+    elif max_window < own_window:
+        raise ValueError(f"max_window={max_window} is below this data's {own_window}")
+    pad = D * (capacity - n)  # never addressed: every cell range ends before D * n
+    entries = lambda a, fill: jnp.asarray(np.concatenate([a, np.full(pad, fill, a.dtype)]))
     return GridIndex(
-        xs=jnp.asarray(s[src, 0]), ys=jnp.asarray(s[src, 1]), gs=jnp.asarray(g[src]),
-        orig=jnp.asarray(src.astype(np.int32)), offsets=jnp.asarray(offsets.astype(np.int32)),
-        n_data=n, k=int(k), radius_s=float(radius_s), radius_g=float(radius_g), growth=float(growth),
-        x0=x0, y0=y0, h_x=h_x, h_y=h_y, n_x=n_x, n_y=n_y, n_g=n_g, margin=margin,
-        max_level=int(max_level), max_window=max(max_window, 1),
+        xs=entries(s[src, 0], 0), ys=entries(s[src, 1], 0), gs=entries(g[src], 0),
+        orig=entries(src.astype(np.int32), 0), offsets=jnp.asarray(offsets.astype(np.int32)),
+        n_data=jnp.int32(n), k=int(k), radius_s=float(radius_s), radius_g=float(radius_g),
+        growth=float(growth), x0=x0, y0=y0, h_x=h_x, h_y=h_y, n_x=n_x, n_y=n_y, n_g=n_g,
+        margin=margin, max_level=int(max_level), max_window=int(max_window),
     )
 
 
@@ -406,10 +429,11 @@ def _items_per_query(index: GridIndex, qx, qy, qg, level: int):
     return ((length + W - 1) // W).sum(axis=1)
 
 
-def _bucket(n: int) -> int:
-    """Round ``n`` up to 16 significant levels per power of two (bounds recompiles, <7% waste)."""
+def _bucket(n: int, coarse: bool = False) -> int:
+    """Round ``n`` up to 16 significant levels per power of two (bounds recompiles, <7% waste),
+    or to a power of two if ``coarse`` (the small later passes: more sharing, more waste)."""
     n = max(int(n), 1)
-    unit = 1 << max(n.bit_length() - 4, 0)
+    unit = 1 << max(n.bit_length() - (1 if coarse else 4), 0)
     return -(-n // unit) * unit
 
 
@@ -446,7 +470,8 @@ def check_found(nb: Neighbours) -> Neighbours:
     return nb
 
 
-def search_all(index: GridIndex, key, query_s, query_g, *, mesh: Mesh | None = None) -> Neighbours:
+def search_all(index: GridIndex, key, query_s, query_g, *, mesh: Mesh | None = None,
+               n_queries: int | None = None) -> Neighbours:
     """Exact neighbours of any number of queries (host-driven passes; not jittable).
 
     Pass 1 evaluates level 0 for all queries (sorted by cell for locality); the
@@ -458,10 +483,18 @@ def search_all(index: GridIndex, key, query_s, query_g, *, mesh: Mesh | None = N
     A query's sample depends only on ``key`` and its position in ``query_s``.
     ``mesh`` (see :mod:`lazyq_jax.parallel`): every pass splits its queries over
     the devices, the data (index) is replicated; the result is bitwise the same.
+
+    ``n_queries``: only the first ``n_queries`` rows are searched; the rest are
+    padding (results 0), so that datasets of different sizes padded to one length
+    share the compiled passes.  A searched query's result does not depend on the
+    padding.
     """
     qs, qg = _check_points(query_s, query_g, "query")
     qg = wrap_angle(qg)
     n_q = qs.shape[0]
+    n_real = n_q if n_queries is None else int(n_queries)
+    if not 0 <= n_real <= n_q:
+        raise ValueError(f"n_queries={n_queries} must lie in [0, {n_q}]")
     k = index.k
     if n_q == 0:
         z = jnp.zeros((0,), jnp.int32)
@@ -470,30 +503,35 @@ def search_all(index: GridIndex, key, query_s, query_g, *, mesh: Mesh | None = N
     cell = (np.floor((qg + np.pi) * (index.n_g / (2 * np.pi))).astype(np.int64) * index.n_y
             + np.clip(np.floor((qs[:, 1] - index.y0) / index.h_y), 0, index.n_y - 1).astype(np.int64)
             ) * index.n_x + np.clip(np.floor((qs[:, 0] - index.x0) / index.h_x), 0, index.n_x - 1).astype(np.int64)
-    order = np.argsort(cell, kind="stable").astype(np.int32)
+    order = np.argsort(cell[:n_real], kind="stable").astype(np.int32)
     # Level at which the radii cover everything: |B| = N there.
-    lo_x, lo_y = min(qs[:, 0].min(), index.x0), min(qs[:, 1].min(), index.y0)
-    hi_x = max(qs[:, 0].max(), float(index.xs.max()))
-    hi_y = max(qs[:, 1].max(), float(index.ys.max()))
+    real = qs[:n_real] if n_real else qs[:1]
+    lo_x, lo_y = min(real[:, 0].min(), index.x0), min(real[:, 1].min(), index.y0)
+    hi_x = max(real[:, 0].max(), float(index.xs.max()))
+    hi_y = max(real[:, 1].max(), float(index.ys.max()))
     diag = math.hypot(hi_x - lo_x, hi_y - lo_y)
     g = index.growth
     level_all = 1 + max(0, math.ceil(math.log(max(diag, 1e-30) / index.radius_s) / math.log(g)),
                         math.ceil(math.log(np.pi / index.radius_g) / math.log(g)))
+    # The passes do not read max_level/max_window (query_neighbours' capacities): indices that
+    # differ only there share compiled passes.
+    index = index.replace(max_level=0, max_window=1)
     out = (jnp.zeros((n_q, k), jnp.int32), jnp.zeros((n_q,), jnp.int32), jnp.zeros((n_q,), jnp.int32))
     pending, lo, hi, p = order, 0, 0, 0
     qs_j, qg_j = jnp.asarray(qs), jnp.asarray(qg)
     d = 1 if mesh is None else mesh.size
     while pending.size:
-        # Pad the pending queries (pass 1: to a multiple of the device count; later,
-        # few, passes: to a bucketed size) with the out-of-range index n_q, whose
-        # results _pass drops.
-        size = -(-(pending.size if p == 0 else _bucket(pending.size)) // d) * d
+        # Pad the pending queries (pass 1: all n_q rows, padding included; later, few,
+        # passes: to a power of two, so that datasets of similar sizes share compiled
+        # passes) to a multiple of the device count with the out-of-range index n_q,
+        # whose results _pass drops.
+        size = -(-(n_q if p == 0 else 1 << (pending.size - 1).bit_length()) // d) * d
         sub = np.concatenate([pending, np.full(size - pending.size, n_q, np.int32)])
         sub_j = jnp.asarray(sub)
         read = jnp.minimum(sub_j, n_q - 1)
         n_it = np.asarray(_items_per_query(index, qs_j[read, 0], qs_j[read, 1], qg_j[read], level=hi))
         out = _pass(index, jax.random.fold_in(key, p), qs_j, qg_j, sub_j, out, lo=lo, hi=hi,
-                    n_items=_bucket(n_it.reshape(d, -1).sum(axis=1).max()),
+                    n_items=_bucket(n_it.reshape(d, -1).sum(axis=1).max(), coarse=p > 0),
                     steps=int(n_it.max()).bit_length(), mesh=mesh)
         pending = pending[to_host(out[1])[pending] < 0]
         if pending.size and hi >= level_all:

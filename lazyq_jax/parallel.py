@@ -20,6 +20,7 @@ with axis ``"data"``:
 from __future__ import annotations
 
 import os
+from typing import Callable
 
 import jax
 import numpy as np
@@ -49,6 +50,29 @@ def force_host_devices(n: int | None = None) -> None:
     flags = os.environ.get("XLA_FLAGS", "")
     if "xla_force_host_platform_device_count" not in flags:
         os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={n}".strip()
+
+
+COMPILE_CACHE_ENV = "LAZYQ_COMPILE_CACHE"
+
+
+def enable_compilation_cache(path: str | None = None) -> str | None:
+    """Turn on JAX's persistent compilation cache (what the CLI does at start-up).
+
+    ``path`` defaults to ``$LAZYQ_COMPILE_CACHE``, else ``$XDG_CACHE_HOME/lazyq-jax/jax``
+    (``~/.cache/lazyq-jax/jax``); ``LAZYQ_COMPILE_CACHE=off`` (or ``0``) leaves it off.
+    Programs that took at least 0.5 s to compile are stored there and reloaded by
+    later processes with the same JAX version, devices and flags.  Returns the
+    directory, or None when off.  Library imports never do this by themselves.
+    """
+    raw = os.environ.get(COMPILE_CACHE_ENV, "") if path is None else path
+    if raw.strip().lower() in ("off", "0", "false", "no"):
+        return None
+    if not raw:
+        base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+        raw = os.path.join(base, "lazyq-jax", "jax")
+    jax.config.update("jax_compilation_cache_dir", raw)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    return raw
 
 
 def maybe_initialize_distributed(config: ParallelConfig) -> bool:
@@ -152,6 +176,20 @@ def to_host(x):
         return np.asarray(multihost_utils.process_allgather(leaf, tiled=True))
 
     return jax.tree.map(one, x)
+
+
+def over_seeds(fn: Callable, n_seeds: int) -> Callable:
+    """``jax.jit(jax.vmap(fn))`` for arguments stacked over ``n_seeds`` seeds.
+
+    For a single seed the leading axis is dropped and ``fn`` runs unbatched: XLA's CPU
+    kernels for a batch of one were measured 2-3x slower than the unbatched ones (a
+    paper-scale epoch 4.9 s vs 1.75 s), while for 8 seeds the batched epoch costs the
+    same per seed as one unbatched epoch (README, Performance).
+    """
+    if n_seeds > 1:
+        return jax.jit(jax.vmap(fn))
+    one = jax.jit(fn)
+    return lambda *args: jax.tree.map(lambda x: x[None], one(*jax.tree.map(lambda x: x[0], args)))
 
 
 def is_main_process() -> bool:

@@ -16,10 +16,10 @@ import numpy as np
 from jax.sharding import Mesh
 from tqdm.auto import tqdm
 
-from lazyq_jax.checkpoint import CheckpointError, latest_cycle, load_checkpoint, save_checkpoint
+from lazyq_jax.checkpoint import CheckpointError, latest_cycle, load_latest_intact, save_checkpoint
 from lazyq_jax.config import Config, to_dict
 from lazyq_jax.data import DatasetError, collect, dataset_summary, load_dataset, save_dataset
-from lazyq_jax.neighbours import find_neighbours
+from lazyq_jax.neighbours import build_index, search_all
 from lazyq_jax.parallel import barrier, is_main_process, make_mesh, put, replicated, to_host
 from lazyq_jax.train import check_mesh, make_train_for
 from lazyq_jax.types import Transitions
@@ -71,20 +71,45 @@ def prepare_dataset(config: Config, run_dir: Path, progress: bool = True,
     return data
 
 
+def state_bounds(config: Config, s=None) -> tuple[float, float, float, float]:
+    """``(x_min, y_min, x_max, y_max)`` of the grids over the push task's states.
+
+    Finger starts lie in ``[-R, R]^2`` and every move adds ``action_length``, so states
+    lie within ``R + (moves_per_start - 1) c`` (plus 1e-3); widened to cover ``s``
+    (``[n, 2]``) if given.  Fixed bounds make the grid, hence the neighbour samples,
+    the same for every dataset of a config (a study's seeds and their single runs).
+    """
+    c = config.collect
+    r = c.start_range + (c.moves_per_start - 1) * c.push.action_length + 1e-3
+    lo, hi = np.array([-r, -r]), np.array([r, r])
+    if s is not None and len(s):
+        s = np.asarray(s, np.float64)
+        lo, hi = np.minimum(lo, s.min(axis=0)), np.maximum(hi, s.max(axis=0))
+    return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+
+
 def neighbours_for(config: Config, data: Transitions, cycle: int | None = None,
-                   mesh: Mesh | None = None) -> jax.Array:
+                   mesh: Mesh | None = None, *, n_valid: int | None = None,
+                   bounds: tuple[float, float, float, float] | None = None) -> jax.Array:
     """``idx[N, k]``: each transition's neighbourhood (§V-A-2) with every row as a query.
 
     ``cycle`` picks a fresh random k-subset per cycle (``train.resample_neighbours``).
     ``mesh``: queries split over its devices (the same result for any device count).
+    ``n_valid``: only the first ``n_valid`` rows are data, the rest padding (their
+    rows of ``idx`` are 0); ``bounds``: the grid's bounds (default
+    :func:`state_bounds`).  With the same bounds, a padded dataset gets the same
+    neighbourhoods as unpadded.
     """
     key = run_keys(config)["neighbours"]
     if cycle is not None:
         key = jax.random.fold_in(purpose_key(config.seed, "resample"), cycle)
     nc = config.neighbours
-    found = find_neighbours(key, data.s, data.g, data.s, data.g, k=nc.k, radius_s=nc.radius_s,
-                            radius_g=nc.radius_g, growth=nc.growth, mesh=mesh)
-    return found.idx
+    n = data.size if n_valid is None else int(n_valid)
+    s, g = np.asarray(data.s[:n]), np.asarray(data.g[:n])
+    index = build_index(s, g, k=nc.k, radius_s=nc.radius_s, radius_g=nc.radius_g,
+                        growth=nc.growth, max_level=0, capacity=data.size,
+                        bounds=bounds or state_bounds(config, s))
+    return search_all(index, key, data.s, data.g, mesh=mesh, n_queries=n).idx
 
 
 class RunDirError(ValueError):
@@ -125,12 +150,15 @@ def fit(config: Config, run_dir: str | Path, *, resume: bool = False, overwrite:
                 shutil.rmtree(ckpt_dir)
             barrier("overwrite")
         elif resume:
-            try:
-                restored, _ = load_checkpoint(ckpt_dir, expect=config,  # refuses a mismatch early
-                                              sharding=replicated(mesh))
+            try:  # refuses a mismatch early; skips (and keeps) damaged newest checkpoints
+                found = load_latest_intact(ckpt_dir, expect=config, sharding=replicated(mesh),
+                                           warn=_log)
             except CheckpointError as e:
                 raise CheckpointError(f"{e}; to start this run afresh, pass --overwrite "
-                                      "(make train ARGS=--overwrite)") from e
+                                      "(make train ARGS=--overwrite)") from None
+            restored = None if found is None else found[0]
+            if found is None:
+                _log(f"resume: no intact checkpoint left in {ckpt_dir}; starting afresh")
         else:
             raise RunDirError(f"{run_dir} already holds checkpoints of a run; continue it with "
                               "--resume, replace it with --overwrite, or pick another --run-dir")

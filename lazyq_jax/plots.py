@@ -121,3 +121,31 @@ def write_all(out_dir: Path, value_fn, results, rollouts_b, targets, config: Con
     fig4_outcomes(results, paths[1])
     fig5_trajectories(rollouts_b, targets, results, config, eval_config.success_radius, paths[2])
     return paths
+
+
+def study_per_direction(results: dict, path: Path) -> Path:
+    """Correct rate per goal direction (protocol A), mean over seeds with 95 % CI bars,
+    one group of bars per direction and one colour per method."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    methods = results["methods"]
+    fig, ax = plt.subplots(figsize=(11, 4.2), constrained_layout=True)
+    width = 0.8 / max(len(methods), 1)
+    for j, (name, m) in enumerate(methods.items()):
+        rows = m["per_direction"]
+        x = np.arange(len(rows)) + (j - (len(methods) - 1) / 2) * width
+        mean = np.array([r["mean"] for r in rows])
+        low = np.array([r["ci95"][0] if r["ci95"] else r["mean"] for r in rows])
+        high = np.array([r["ci95"][1] if r["ci95"] else r["mean"] for r in rows])
+        ax.bar(x, mean, width, label=name, yerr=[mean - low, high - mean], capsize=2)
+    goals = [r["goal"] for r in next(iter(methods.values()))["per_direction"]]
+    ax.set_xticks(np.arange(len(goals)), [f"{np.degrees(g):.1f}°" for g in goals], rotation=45)
+    ax.set_ylim(0, 1.05)
+    ax.set_ylabel("correct (protocol A)")
+    ax.set_xlabel("goal direction (axes at 0°, 90°, 180°, 270°)")
+    ax.set_title(f"Correct pushes per goal direction: mean over {len(results['seeds'])} seeds, "
+                 "95 % CI")
+    if len(methods) > 1:
+        ax.legend(ncol=min(len(methods), 8), fontsize=8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -24,14 +24,16 @@ class LazyPolicy(NamedTuple):
 
 def make_lazy_policy(value_fn: Callable, data: Transitions, *, gamma: float, action_length: float,
                      k: int = 20, radius_s: float = 0.06, radius_g: float = 0.1,
-                     growth: float = 2 ** (1 / 3), max_level: int = 8) -> LazyPolicy:
+                     growth: float = 2 ** (1 / 3), max_level: int = 8,
+                     bounds: tuple[float, float, float, float] | None = None) -> LazyPolicy:
     """Precompute what the policy needs from a trained ``value_fn(s, g)`` and its dataset.
 
     The neighbourhood semantics are those of training (§V-A-2); ``max_level`` bounds
-    the growths a policy query may use (see :func:`lazy_policy`).
+    the growths a policy query may use (see :func:`lazy_policy`); ``bounds``: the
+    grid's bounds (see :func:`lazyq_jax.build_index`; default: the data's).
     """
     index = build_index(data.s, data.g, k=k, radius_s=radius_s, radius_g=radius_g, growth=growth,
-                        max_level=max_level)
+                        max_level=max_level, bounds=bounds)
     values = jax.jit(bootstrap_table, static_argnums=(0,))(value_fn, data, gamma)
     return LazyPolicy(index, data.a, values, float(action_length))
 

@@ -3,16 +3,23 @@
 ``make_train(config, action_length)`` returns a :class:`Trainer` of pure functions:
 
 * ``init(key) -> TrainState``
-* ``run_cycle(state, data, idx) -> (state, metrics)``: one cycle, jitted: targets from
+* ``run_cycle(state, data, idx, n_valid=None) -> (state, metrics)``: one cycle: targets from
   the parameters frozen at the start of the cycle (the DQN target network, Eq. 11-12),
   then ``epochs`` epochs of Adam on ``mean((V - Y)^2)`` (Eq. 10) in ``lax.scan``.
   With ``double_dqn`` the targets are Eq. (13)-(14) and are refreshed every epoch:
   the action comes from the fit to the *online* network's values, its value from
   the frozen network's fit.
-* ``train(key, data, idx) -> (state, metrics)``: all cycles in one ``lax.scan``
-  (``jit``/``vmap`` it over keys for many seeds at once, without ``progress``).
-  It keeps ``idx`` fixed; ``resample_neighbours`` is honoured by the driver
-  :func:`lazyq_jax.pipeline.fit`, which draws fresh neighbourhoods between cycles.
+* ``train(key, data, idx, n_valid=None) -> (state, metrics)``: all cycles in one
+  ``lax.scan``.  It keeps ``idx`` fixed; ``resample_neighbours`` is honoured by the
+  drivers (:func:`lazyq_jax.pipeline.fit`, :mod:`lazyq_jax.study`), which draw fresh
+  neighbourhoods between cycles.
+
+All three are pure: ``jax.vmap`` them over keys (and datasets) to train many seeds in
+one program, as :mod:`lazyq_jax.study` does.  Datasets of different sizes are stacked
+by padding them to a common length (:func:`lazyq_jax.types.pad_transitions`) and
+passing each one's true size ``n_valid``: rows at or beyond ``n_valid`` are never
+trained on nor counted in the metrics, and a dataset trains exactly as it would
+unpadded (the shuffle below draws the same order for its rows).
 
 The host-side driver with checkpoints, progress and resume is :func:`lazyq_jax.pipeline.fit`.
 """
@@ -57,10 +64,28 @@ class Trainer(NamedTuple):
     network: ValueNetwork
     optimizer: optax.GradientTransformation
     init: Callable
-    epoch: Callable  # epoch(state, data, y, key) -> (state, mean loss): one shuffled pass
+    epoch: Callable  # epoch(state, data, y, key, n_valid) -> (state, mean loss): one shuffled pass
     run_cycle: Callable
     train: Callable
     value_fn: Callable  # value_fn(state) -> V(s[B, 2], g[B]) in inference mode
+
+
+def shuffle(key: jax.Array, n: int, n_valid: jax.Array) -> jax.Array:
+    """A uniformly random order of the rows ``0 .. n_valid - 1``, followed by the rest.
+
+    Rows are sorted by 32 random bits drawn per row position (``bits(key, (n,))[i]``:
+    the same for row ``i`` whatever ``n`` is), ties by position, so a dataset padded
+    to any length shuffles its valid rows exactly as it would unpadded.
+    """
+    rows = jnp.arange(n, dtype=jnp.int32)
+    bits = jax.random.bits(key, (n,), jnp.uint32)
+    return jax.lax.sort((rows >= n_valid, bits, rows), num_keys=2)[2]
+
+
+def masked_mean(x: jax.Array, valid: jax.Array) -> jax.Array:
+    """Mean of ``x`` over the rows where ``valid``."""
+    w = valid.astype(x.dtype)
+    return jnp.sum(x * w) / jnp.maximum(jnp.sum(w), 1)
 
 
 def check_mesh(config: TrainConfig, mesh: Mesh | None) -> None:
@@ -122,38 +147,48 @@ def make_train(config: TrainConfig, action_length: float, *, state_scale: float 
     def mean_over_mesh(x):
         return x if mesh is None else jax.lax.pmean(x, AXIS)
 
-    def device_epoch(state: TrainState, data: Transitions, y: jax.Array, key: jax.Array):
+    def device_epoch(state: TrainState, data: Transitions, y: jax.Array, key: jax.Array,
+                     n_valid: jax.Array):
         # One device's part of an epoch (all of it without a mesh).
         n = data.r.shape[0]
         batch = min(config.batch_size, n // d * d)
         if batch == 0:
             raise ValueError(f"{n} transitions cannot be split over {d} devices")
-        n_batches = n // batch  # the shuffled remainder (< batch rows) is left out of this epoch
+        # The shuffled remainder (< batch rows) is left out of this epoch; so are padded rows.
+        n_batches, live_batches = n // batch, n_valid // batch
         share = batch // d
         first = 0 if mesh is None else jax.lax.axis_index(AXIS) * share
-        perm = jax.random.permutation(key, n)  # the same on every device
+        perm = shuffle(key, n, n_valid)  # the same on every device
 
         def minibatch(carry, i):
             params, batch_stats, opt_state = carry
             rows = jax.lax.dynamic_slice_in_dim(perm, i * batch + first, share)
-            (loss, batch_stats), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+            (loss, new_stats), grads = jax.value_and_grad(loss_fn, has_aux=True)(
                 params, batch_stats, data.s[rows], data.g[rows], y[rows])
-            updates, opt_state = optimizer.update(mean_over_mesh(grads), opt_state, params)
-            return (optax.apply_updates(params, updates), batch_stats, opt_state), loss
+            updates, new_opt = optimizer.update(mean_over_mesh(grads), opt_state, params)
+            new = (optax.apply_updates(params, updates), new_stats, new_opt)
+            live = i < live_batches  # batches past a padded dataset's end change nothing
+            keep = jax.tree.map(lambda a, b: jnp.where(live, a, b), new, carry)
+            return keep, jnp.where(live, loss, 0.0)
 
         (params, batch_stats, opt_state), losses = jax.lax.scan(
             minibatch, (state.params, state.batch_stats, state.opt_state), jnp.arange(n_batches))
         state = state.replace(params=params, batch_stats=batch_stats, opt_state=opt_state)
-        return state, jnp.mean(losses)
+        return state, jnp.sum(losses) / jnp.maximum(live_batches, 1)
 
-    def epoch(state: TrainState, data: Transitions, y: jax.Array, key: jax.Array):
+    def epoch(state: TrainState, data: Transitions, y: jax.Array, key: jax.Array,
+              n_valid: jax.Array | None = None):
+        n_valid = valid_rows(data, n_valid)
         if mesh is None:
-            return device_epoch(state, data, y, key)
+            return device_epoch(state, data, y, key, n_valid)
         # Everything in and out is replicated; inside, each device works on its share.
         return jax.shard_map(device_epoch, mesh=mesh, in_specs=P(), out_specs=P(),
-                             check_vma=False)(state, data, y, key)
+                             check_vma=False)(state, data, y, key, n_valid)
 
-    def run_cycle(state: TrainState, data: Transitions, idx: jax.Array):
+    def run_cycle(state: TrainState, data: Transitions, idx: jax.Array,
+                  n_valid: jax.Array | None = None):
+        n_valid = valid_rows(data, n_valid)
+        valid = jnp.arange(data.r.shape[0]) < n_valid
         key, k_epochs = jax.random.split(state.key)
         # The target network: the parameters frozen at the start of the cycle (Eq. 11-12).
         alpha, beta, y_nb = fits(state, data, idx)
@@ -166,10 +201,12 @@ def make_train(config: TrainConfig, action_length: float, *, state_scale: float 
                 _, beta_online, _ = fits(state, data, idx)
                 y, active = double_dqn_target(alpha, beta, beta_online, y_nb, action_length,
                                               config.clip)
-            state, loss = epoch(state, data, y, k)
+            state, loss = epoch(state, data, y, k, n_valid)
             if progress is not None:
                 jax.debug.callback(progress, e)  # ordered=True needs a single device
-            stats = (jnp.mean(y), jnp.std(y), jnp.mean(active.astype(jnp.float32)))
+            y_mean = masked_mean(y, valid)
+            stats = (y_mean, jnp.sqrt(masked_mean((y - y_mean) ** 2, valid)),
+                     masked_mean(active.astype(jnp.float32), valid))
             return state, (loss, stats)
 
         epochs = jnp.arange(config.epochs)
@@ -183,18 +220,23 @@ def make_train(config: TrainConfig, action_length: float, *, state_scale: float 
             "target_mean": y_mean[-1],
             "target_std": y_std[-1],
             "clip_fraction": clip_frac[-1],
-            "beta_norm_mean": jnp.mean(safe_norm(beta)),
+            "beta_norm_mean": masked_mean(safe_norm(beta), valid),
             "probe_values": probes,
         }
         return state, metrics
 
-    def train(key: jax.Array, data: Transitions, idx: jax.Array):
+    def train(key: jax.Array, data: Transitions, idx: jax.Array, n_valid: jax.Array | None = None):
         def cycle(state, _):
-            return run_cycle(state, data, idx)
+            return run_cycle(state, data, idx, n_valid)
 
         return jax.lax.scan(cycle, init(key), None, length=config.cycles)
 
     return Trainer(config, network, optimizer, init, epoch, run_cycle, train, value_fn)
+
+
+def valid_rows(data: Transitions, n_valid: jax.Array | None) -> jax.Array:
+    """``n_valid`` as an int32 scalar, or the number of rows of ``data`` if None."""
+    return jnp.asarray(data.r.shape[0] if n_valid is None else n_valid, jnp.int32)
 
 
 def make_train_for(config: Config, **kwargs) -> Trainer:

@@ -41,3 +41,17 @@ class Transitions:
             s=f(self.s), a=f(self.a), s_next=f(self.s_next), r=f(self.r), g=f(self.g),
             done=jnp.asarray(self.done, bool),
         )
+
+
+def pad_transitions(data: Transitions, n: int) -> Transitions:
+    """``data`` with zero rows appended up to ``n`` rows (``done`` False).
+
+    Used to stack datasets of different sizes (one per seed) for ``jax.vmap``; pass
+    each dataset's true size as ``n_valid`` to the training functions, which then
+    ignore the padding (see :mod:`lazyq_jax.train`).
+    """
+    size = data.size
+    if n < size:
+        raise ValueError(f"cannot pad {size} rows to {n}")
+    return jax.tree.map(lambda x: jnp.concatenate([x, jnp.zeros((n - size, *x.shape[1:]), x.dtype)]),
+                        data)
