@@ -110,6 +110,44 @@ def test_resume_equals_uninterrupted_run(tmp_path, flags):
     assert [json.loads(line)["cycle"] for line in lines] == [1, 2, 3]
 
 
+def test_resume_skips_a_damaged_newest_checkpoint(tmp_path, capsys):
+    """A truncated file in the newest checkpoint: resume warns, moves it aside (nothing is
+    deleted), continues from the newest intact one, and ends as an uninterrupted run."""
+    full, _, _ = fit(TINY, tmp_path / "full", progress=False)
+    run = tmp_path / "cut"
+    fit(TINY, run, progress=False)
+    victim = max((p for p in (run / "checkpoints" / "3" / "state").rglob("*") if p.is_file()),
+                 key=lambda p: p.stat().st_size)
+    victim.write_bytes(victim.read_bytes()[: victim.stat().st_size // 2])
+    with pytest.raises(CheckpointError, match="damaged or truncated"):
+        load_checkpoint(run / "checkpoints")
+    capsys.readouterr()
+    resumed, _, _ = fit(TINY, run, resume=True, progress=False)
+    log = capsys.readouterr().out
+    assert "checkpoints/3" in log and "damaged or truncated" in log and "resume: from cycle 2" in log
+    assert (run / "checkpoints_damaged" / "3").is_dir()
+    assert tree_equal(resumed, full)
+    lines = (run / "metrics.jsonl").read_text().splitlines()
+    assert [json.loads(line)["cycle"] for line in lines] == [1, 2, 3]
+
+
+def test_damaged_checkpoint_error_through_the_cli_has_no_traceback(tmp_path):
+    run = tmp_path / "run"
+    args = [sys.executable, "-m", "lazyq_jax", "train", "--preset", "smoke", "--run-dir", str(run),
+            "--no-eval", "--no-progress", "--set", "collect.n_starts=100", "--set", "train.cycles=1"]
+    assert subprocess.run(args, capture_output=True, timeout=600).returncode == 0
+    for p in (run / "checkpoints" / "1" / "state").rglob("*"):
+        if p.is_file():
+            p.write_bytes(b"\0" * 7)
+    evaluate = subprocess.run([sys.executable, "-m", "lazyq_jax", "evaluate", "--run-dir", str(run)],
+                              capture_output=True, text=True, timeout=600)
+    assert evaluate.returncode == 2 and "damaged or truncated" in evaluate.stderr
+    assert "Traceback" not in evaluate.stderr, evaluate.stderr[-2000:]
+    resumed = subprocess.run(args + ["--resume"], capture_output=True, text=True, timeout=600)
+    assert resumed.returncode == 0 and "starting afresh" in resumed.stdout + resumed.stderr
+    assert "Traceback" not in resumed.stderr
+
+
 def test_run_directory_is_not_overwritten_by_accident(tmp_path):
     small = override(TINY, ["train.cycles=1"])
     fit(small, tmp_path, progress=False)
