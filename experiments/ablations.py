@@ -141,7 +141,8 @@ def main():
              "final mean target | final clip fraction |", "|---|---|---|---|---|---|---|---|"]
     for name, (m, what) in rows.items():
         c = all_curves[name]
-        lines.append(f"| {name} | {what} | " + " | ".join(format_ci(m["summary"][k]) for k in keys)
+        lines.append(f"| {name} | {what} | " + " | ".join(format_ci(m["summary"][k]) if k in m["summary"] else "–"
+                                                          for k in keys)
                      + f" | {c['target_mean']['mean'][-1]:+.3f} | {c['clip_fraction']['mean'][-1]:.1%} |")
     table = "\n".join(lines) + "\n"
     args.out.mkdir(parents=True, exist_ok=True)

@@ -90,8 +90,8 @@ def agent_stats(name: str, config, seeds, out: Path, reuse: dict) -> dict:
     per_direction = np.array([r["per_direction_correct_rate"] for r in rows])
     return {"source": source, "seeds": [r["seed"] for r in rows],
             "per_direction_mean": per_direction.mean(axis=0).round(4).tolist(),
-            "axis": t_interval([r["axis_correct_rate"] for r in rows]),
-            "diagonal": t_interval([r["diagonal_correct_rate"] for r in rows])}
+            **{key: t_interval([r[f"{key}_correct_rate"] for r in rows])
+               for key in ("axis", "diagonal") if np.isfinite(rows[0][f"{key}_correct_rate"])}}
 
 
 def plot(report: dict, path: Path) -> None:
@@ -155,7 +155,7 @@ def main():
              "head-on 30/40/44° move at | axis correct | diagonal correct |", "|---|---|---|---|---|---|"]
     for name, r in report.items():
         agent = r.get("agent")
-        cell = lambda key: (f"{agent[key]['mean']:.0%}" if agent else "–")
+        cell = lambda key: (f"{agent[key]['mean']:.0%}" if agent and key in agent else "–")
         lines.append(f"| {r['label']} | {', '.join(f'{v:.0f}' for v in r['data']['positives_mean'])} | "
                      f"{r['data']['diagonal_to_axis_of_means']:.2f} | "
                      f"{' / '.join(f'{v:.0f}°' for v in r['data']['head_on_30_40_44'])} | "

@@ -114,7 +114,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", type=int, default=8, help="number of seeds (default 8)")
     p.add_argument("--first-seed", type=int, default=0,
                    help="seeds are first-seed .. first-seed + seeds - 1 (default 0)")
-    p.add_argument("--methods", default="lazy", help="comma-separated methods (default lazy)")
+    p.add_argument("--methods", default="lazy",
+                   help="comma-separated methods (default lazy): lazy, iql, td3bc, dqn, naf, bc, "
+                   "random, scripted; a baseline may take options, e.g. iql:temperature=10:budget=4")
     p.add_argument("--resume", action="store_true", help="continue the study in --run-dir")
     p.add_argument("--overwrite", action="store_true", help="delete the study in --run-dir first")
     p.set_defaults(func=cmd_study)

@@ -149,3 +149,30 @@ def study_per_direction(results: dict, path: Path) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def study_methods(results: dict, path: Path) -> Path:
+    """Bar chart of the methods of a study: axis correct, all 16 correct and long-horizon
+    success, mean over seeds with 95 % CI bars."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    names = list(results["methods"])
+    keys = (("axis_correct_rate", "axis goals correct (A)"),
+            ("overall_correct_rate", "all 16 goals correct (A)"),
+            ("long_horizon_success_rate", "long horizon success (B)"))
+    fig, ax = plt.subplots(figsize=(max(7, 1.3 * len(names) + 3), 4.2), constrained_layout=True)
+    width = 0.8 / len(keys)
+    for j, (key, label) in enumerate(keys):
+        rows = [results["methods"][n]["summary"].get(key) for n in names]
+        mean = np.array([r["mean"] if r else np.nan for r in rows])
+        low = np.array([r["ci95"][0] if r and r["ci95"] else m for r, m in zip(rows, mean)])
+        high = np.array([r["ci95"][1] if r and r["ci95"] else m for r, m in zip(rows, mean)])
+        x = np.arange(len(names)) + (j - 1) * width
+        ax.bar(x, mean, width, label=label, yerr=[mean - low, high - mean], capsize=2)
+    ax.set_xticks(np.arange(len(names)), names, rotation=20, ha="right")
+    ax.set_ylim(0, 1.05)
+    ax.set_ylabel("rate")
+    ax.set_title(f"Methods on the same data: mean over {len(results['seeds'])} seeds, 95 % CI")
+    ax.legend(fontsize=8, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.18))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -34,17 +34,21 @@ import dataclasses
 import json
 import shutil
 import time
+import zlib
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import orbax.checkpoint as ocp
 from tqdm.auto import tqdm
 
+from lazyq_jax import baselines
 from lazyq_jax.checkpoint import load_latest_intact, save_checkpoint
-from lazyq_jax.config import Config, ConfigError, from_dict, to_dict
+from lazyq_jax.config import Config, ConfigError, from_dict, override, to_dict
 from lazyq_jax.data import dataset_summary
+from lazyq_jax.env.scripted import scripted_push_policy
 from lazyq_jax.evaluate import evaluate_stacked, policy_act
 from lazyq_jax.neighbours import build_index
 from lazyq_jax.parallel import over_seeds
@@ -56,7 +60,7 @@ from lazyq_jax.train import make_train_for
 from lazyq_jax.types import Transitions, pad_transitions
 
 STUDY_VERSION = 1
-METHODS = ("lazy",)
+METHODS = ("lazy", *baselines.METHODS, "random", "scripted")
 # The rates a study reports per seed and as mean +- CI (the last one is protocol B's).
 RATES = ("axis_correct_rate", "diagonal_correct_rate", "overall_correct_rate",
          "long_horizon_success_rate")
@@ -83,11 +87,34 @@ def check_seeds(seeds: Sequence[int]) -> tuple[int, ...]:
     return tuple(int(s) for s in seeds)
 
 
+def parse_method(spec: str) -> tuple[str, dict[str, str]]:
+    """``"iql:temperature=10:budget=4"`` -> ``("iql", {"temperature": "10", "budget": "4"})``.
+
+    A method is one of :data:`METHODS`; a baseline may carry overrides of its config
+    fields and ``budget`` (a multiple of lazy Q's gradient steps).
+    """
+    name, *parts = spec.strip().split(":")
+    if name not in METHODS:
+        raise ConfigError(f"unknown method {name!r} in {spec!r}; choose from {list(METHODS)}")
+    fields = {}
+    for part in parts:
+        if "=" not in part:
+            raise ConfigError(f"method option {part!r} in {spec!r} must look like field=value")
+        key, value = part.split("=", 1)
+        fields[key.strip()] = value.strip()
+    if fields and name in ("lazy", "random", "scripted"):
+        raise ConfigError(f"{spec!r}: {name} takes no options (set lazy Q's with --set)")
+    return name, fields
+
+
 def check_methods(methods: Sequence[str]) -> tuple[str, ...]:
-    methods = tuple(methods)
-    unknown = [m for m in methods if m not in METHODS]
-    if not methods or unknown:
-        raise ConfigError(f"unknown method(s) {unknown or list(methods)}; choose from {list(METHODS)}")
+    methods = tuple(m.strip() for m in methods)
+    if not methods:
+        raise ConfigError(f"a study needs at least one method; choose from {list(METHODS)}")
+    for m in methods:
+        parse_method(m)
+    if len(set(methods)) != len(methods):
+        raise ConfigError(f"methods must be distinct, got {list(methods)}")
     return methods
 
 
@@ -241,6 +268,9 @@ def run_lazy(config: Config, run_dir: Path, sd: StudyData, progress: bool = True
     timings = json.loads(timing_path.read_text()) if timing_path.exists() else {}
     for name, seconds in spent.items():  # accumulated over resumed sessions
         timings[name] = round(timings.get(name, 0.0) + seconds, 1)
+    if timings.get("train_s"):
+        timings["steps"] = lazy_steps(config, sd)
+        timings["steps_per_s"] = round(timings["steps"] * len(sd.seeds) / timings["train_s"], 1)
     timing_path.write_text(json.dumps(timings))
     if eval_path.exists():
         per_seed = json.loads(eval_path.read_text())
@@ -254,6 +284,108 @@ def run_lazy(config: Config, run_dir: Path, sd: StudyData, progress: bool = True
     timings["eval_s"] = round(time.perf_counter() - t, 1)
     eval_path.write_text(json.dumps(per_seed, indent=1))
     timing_path.write_text(json.dumps(timings))
+    return {"per_seed_eval": per_seed, "timings": timings}
+
+
+# ----------------------------------------------------------------------------- baselines
+
+
+def lazy_steps(config: Config, sd: StudyData) -> int:
+    """Lazy Q's gradient steps on the smallest of the seeds' datasets: the budget unit."""
+    tc = config.train
+    return tc.cycles * tc.epochs * (int(np.min(np.asarray(sd.n_valid))) // tc.batch_size)
+
+
+def baseline_config(spec: str, config: Config, sd: StudyData):
+    """The config of a baseline in a study: lazy Q's budget (gradient steps x ``budget``),
+    batch size, network width and depth, discount and input scale; the method's own
+    defaults otherwise, then the spec's overrides."""
+    name, fields = parse_method(spec)
+    fields = dict(fields)
+    budget = float(fields.pop("budget", 1.0))
+    if not budget > 0:
+        raise ConfigError(f"{spec!r}: budget must be > 0")
+    tc = config.train
+    cls = baselines.config_class(name)
+    cfg = cls(steps=max(1, round(budget * lazy_steps(config, sd))), batch_size=tc.batch_size,
+              width=tc.width, depth=tc.depth, gamma=tc.gamma,
+              state_scale=config.collect.start_range)
+    cfg = override(cfg, [f"{k}={v}" for k, v in fields.items()])
+    return cfg, budget
+
+
+def _found(act):
+    """An :data:`~lazyq_jax.evaluate.Act` (actions and found flags) of a plain policy."""
+    return lambda key, s, g: (act(key, s, g), jnp.ones(s.shape[0], bool))
+
+
+def _method_dir(run_dir: Path, spec: str) -> Path:
+    return run_dir / "methods" / spec.replace(":", "__").replace("=", "-")
+
+
+def run_baseline(spec: str, config: Config, run_dir: Path, sd: StudyData,
+                 progress: bool = True) -> dict:
+    """Train (or reload) a baseline for every seed at once and evaluate it like lazy Q."""
+    name, _ = parse_method(spec)
+    method_dir = _method_dir(run_dir, spec)
+    method_dir.mkdir(parents=True, exist_ok=True)
+    push, c = config.collect.push, config.collect.push.action_length
+    timings = {}
+    if name in ("random", "scripted"):
+        act = baselines.random_policy(c) if name == "random" else scripted_push_policy(push)
+        policies, act_of = jnp.zeros(len(sd.seeds)), lambda _: _found(act)
+    else:
+        cfg, budget = baseline_config(spec, config, sd)
+        record = {"method": name, "budget": budget, "config": dataclasses.asdict(cfg),
+                  "seeds": list(sd.seeds)}
+        meta = method_dir / "config.json"
+        if meta.exists() and json.loads(meta.read_text()) != record:
+            raise RunDirError(f"{method_dir} holds {spec} trained with another config; "
+                              "pass --overwrite or pick another --run-dir")
+        steps_bar = tqdm(total=cfg.steps, unit="step", desc=f"{spec}: training (all seeds)",
+                         disable=not progress, leave=False)
+
+        def on_step(i):  # once per seed under vmap: move the bar, never back
+            if int(i) > steps_bar.n:
+                steps_bar.update(int(i) - steps_bar.n)
+
+        agent = baselines.make(name, cfg, c, progress=on_step if progress else None)
+        keys = jnp.stack([jax.random.fold_in(run_keys(seed_config(config, s))["train"],
+                                             zlib.crc32(name.encode())) for s in sd.seeds])
+        train = over_seeds(agent.train, len(sd.seeds))
+        abstract = jax.eval_shape(lambda k, d, n: train(k, d, n)[0], keys, sd.stacked, sd.n_valid)
+        checkpointer = ocp.StandardCheckpointer()
+        state_dir = (method_dir / "state").absolute()
+        if state_dir.exists():
+            policies = checkpointer.restore(state_dir, abstract)
+            timings = json.loads((method_dir / "timings.json").read_text())
+            _log(f"{spec}: reusing its trained state ({cfg.steps} steps)")
+        else:
+            meta.write_text(json.dumps(record, indent=1))
+            _log(f"{spec}: training {len(sd.seeds)} seeds x {cfg.steps} steps of batch {cfg.batch_size}")
+            t = time.perf_counter()
+            policies, metrics = jax.block_until_ready(train(keys, sd.stacked, sd.n_valid))
+            seconds = time.perf_counter() - t
+            checkpointer.save(state_dir, policies)
+            checkpointer.wait_until_finished()
+            (method_dir / "metrics.json").write_text(json.dumps(
+                {k: np.asarray(v).round(5).tolist() for k, v in jax.device_get(metrics).items()}))
+            timings = {"train_s": round(seconds, 1), "steps": cfg.steps,
+                       "steps_per_s": round(cfg.steps * len(sd.seeds) / seconds, 1)}
+            (method_dir / "timings.json").write_text(json.dumps(timings))
+        steps_bar.close()
+        act_of = lambda st: _found(agent.policy(st))
+    eval_path = method_dir / "eval.json"
+    if eval_path.exists():
+        per_seed = json.loads(eval_path.read_text())
+        if [r["seed"] for r in per_seed] == list(sd.seeds):
+            return {"per_seed_eval": per_seed, "timings": timings}
+    _log(f"{spec}: evaluating all seeds (protocols A and B)")
+    t = time.perf_counter()
+    per_seed, _, _ = evaluate_stacked(push, config.eval, act_of, policies, sd.seeds)
+    timings["eval_s"] = round(time.perf_counter() - t, 1)
+    eval_path.write_text(json.dumps(per_seed, indent=1))
+    (method_dir / "timings.json").write_text(json.dumps(timings))
     return {"per_seed_eval": per_seed, "timings": timings}
 
 
@@ -314,6 +446,8 @@ def write_results(run_dir: Path, config: Config, sd: StudyData, methods: dict[st
     from lazyq_jax import plots
 
     plots.study_per_direction(results, run_dir / "figures" / "per_direction.png")
+    if len(methods) > 1:
+        plots.study_methods(results, run_dir / "figures" / "methods.png")
     return results
 
 
@@ -326,10 +460,12 @@ def summary_markdown(results: dict) -> str:
     for name, m in results["methods"].items():
         s = m["summary"]
         cell = lambda key: format_ci(s[key]) if key in s else "–"
-        train = m["timings"].get("train_s")
+        t = m["timings"]
+        train = (f"{t['train_s']:.0f} s" if t.get("train_s") else "–") + (
+            f" ({t['steps_per_s']:.0f} steps/s)" if t.get("steps_per_s") else "")
         lines.append(f"| {name} | {cell('axis_correct_rate')} | {cell('diagonal_correct_rate')} | "
                      f"{cell('overall_correct_rate')} | {cell('long_horizon_success_rate')} | "
-                     f"{'%.0f s' % train if train else '–'} |")
+                     f"{train} |")
     d = results["datasets"]
     lines += ["", "Positive rewards per goal octant (mean over seeds): "
               + ", ".join(f"{c}°: {m:.0f}" for c, m in zip(d["positives_by_octant"]["centre_deg"],
@@ -375,7 +511,10 @@ def _diff(a, b, prefix=""):
     return [] if a == b else [prefix.rstrip(".")]
 
 
-RUNNERS: dict[str, Callable] = {"lazy": run_lazy}
+def run_method(spec: str, config: Config, run_dir: Path, sd: StudyData, progress: bool) -> dict:
+    if spec == "lazy":
+        return run_lazy(config, run_dir, sd, progress)
+    return run_baseline(spec, config, run_dir, sd, progress)
 
 
 def run_study(config: Config, run_dir: str | Path, *, seeds: Sequence[int],
@@ -396,7 +535,7 @@ def run_study(config: Config, run_dir: str | Path, *, seeds: Sequence[int],
     (run_dir / "timings.json").write_text(json.dumps({"datasets_s": round(time.perf_counter() - t, 1)}))
     _log(f"study: datasets ready ({time.perf_counter() - t:.1f} s; rows "
          f"{min(d.size for d in sd.datasets):,}-{sd.capacity:,})")
-    records = {name: RUNNERS[name](config, run_dir, sd, progress) for name in methods}
+    records = {spec: run_method(spec, config, run_dir, sd, progress) for spec in methods}
     results = write_results(run_dir, config, sd, records)
     _log(summary_markdown(results))
     _log(f"study: done in {time.perf_counter() - t:.1f} s -> {run_dir / 'results.json'}")

@@ -14,7 +14,6 @@ assert "--xla_force_host_platform_device_count=4" in os.environ.get("XLA_FLAGS",
     "run with XLA_FLAGS=--xla_force_host_platform_device_count=4"
 
 import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from lazyq_jax.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402

@@ -20,7 +20,8 @@ from conftest import PUSH
 
 
 def test_multidevice_results_match_one_device():
-    """Dataset and neighbourhoods bitwise, training within 1e-5 (tests/multidevice_check.py).
+    """Dataset and neighbourhoods bitwise, training within bounds derived from what is compared
+    (tests/multidevice_check.py).
 
     XLA_FLAGS must be set before JAX starts, hence a separate process.
     """
@@ -73,9 +74,12 @@ def _free_port() -> int:
 def test_two_processes_match_one_process(tmp_path):
     """Multi-host on one machine: 2 processes (1 CPU device each, gloo collectives) launched
     by hand as on a cluster.  The dataset is bitwise the single-process one, the trained
-    parameters within 1e-5, and files are written once."""
+    parameters within the Adam bound of a few steps, and files are written once."""
+    # 4 Adam steps (one epoch of 4 minibatches of 1024): too few for the chaos of training
+    # to amplify rounding (see tests/test_study.py), so the Adam bound below applies.
     args = [sys.executable, "-m", "lazyq_jax", "train", "--preset", "smoke", "--no-eval",
-            "--no-progress", "--set", "collect.n_starts=120", "--set", "train.cycles=1"]
+            "--no-progress", "--set", "collect.n_starts=120", "--set", "train.cycles=1",
+            "--set", "train.epochs=1", "--set", "train.batch_size=1024"]
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     port = _free_port()
     procs = [subprocess.Popen(args + ["--run-dir", str(tmp_path / "multi")], stdout=subprocess.PIPE,
@@ -104,6 +108,11 @@ def test_two_processes_match_one_process(tmp_path):
     single_state, _ = load_checkpoint(tmp_path / "single" / "checkpoints")
     diff = max(float(np.abs(np.asarray(a) - np.asarray(b)).max()) for a, b in
                zip(jax.tree.leaves(multi_state.params), jax.tree.leaves(single_state.params)))
-    assert diff < 1e-5, diff
+    # Adam moves a parameter by at most ~lr per step: gradients that differ by a relative
+    # rho (1e-6 for reduction order, ~1 for a wrong shard) give lr * steps * rho; rho = 1e-3.
+    _, config = load_checkpoint(tmp_path / "single" / "checkpoints")
+    steps = config.train.epochs * (single_data.size // config.train.batch_size)
+    assert steps >= 3
+    assert diff < config.train.learning_rate * steps * 1e-3, (diff, steps)
     lines = (tmp_path / "multi" / "metrics.jsonl").read_text().splitlines()
     assert len(lines) == 1, lines  # one writer

@@ -22,8 +22,8 @@ from lazyq_jax.checkpoint import load_checkpoint
 from lazyq_jax.config import ConfigError, override, preset
 from lazyq_jax.data import load_dataset
 from lazyq_jax.pipeline import neighbours_for, prepare_dataset, run_keys
-from lazyq_jax.study import (check_methods, check_seeds, method_summary, prepare_study_data,
-                             seed_config, stacked_neighbours)
+from lazyq_jax.study import (check_methods, check_seeds, method_summary, parse_method,
+                             prepare_study_data, seed_config, stacked_neighbours)
 from lazyq_jax.train import make_train_for
 from lazyq_jax.types import Transitions, pad_transitions
 
@@ -40,8 +40,8 @@ def cli(*args, timeout=900):
 @pytest.fixture(scope="module")
 def study_dir(tmp_path_factory):
     run_dir = tmp_path_factory.mktemp("study") / "smoke"
-    out = cli("study", "--preset", "smoke", "--seeds", "2", "--first-seed", "3", "--run-dir",
-              str(run_dir), "--no-progress")
+    out = cli("study", "--preset", "smoke", "--seeds", "2", "--first-seed", "3", "--methods",
+              "lazy,bc", "--run-dir", str(run_dir), "--no-progress")
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
     return run_dir
 
@@ -62,9 +62,16 @@ def test_results_schema_summary_and_figure(study_dir):
         assert s["n"] == 2 and np.isclose(s["mean"], np.mean(values))
         assert 0 <= s["ci95"][0] <= s["mean"] <= s["ci95"][1] <= 1
     assert len(results["datasets"]["positives_by_octant"]["per_seed"]) == 2
-    assert "| lazy |" in (study_dir / "summary.md").read_text()
-    png = study_dir / "figures" / "per_direction.png"
-    assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
+    bc = results["methods"]["bc"]  # a baseline: same schema, same seeds
+    assert [row["seed"] for row in bc["per_seed"]] == SEEDS and set(bc["summary"]) == set(lazy["summary"])
+    steps = json.loads((study_dir / "methods" / "bc" / "config.json").read_text())["config"]["steps"]
+    tc = SMOKE.train  # lazy Q's budget: cycles x epochs x minibatches of the smallest dataset
+    assert steps == tc.cycles * tc.epochs * (min(row for row in results["datasets"]["rows"]) // tc.batch_size)
+    summary = (study_dir / "summary.md").read_text()
+    assert "| lazy |" in summary and "| bc |" in summary
+    for name in ("per_direction.png", "methods.png"):
+        png = study_dir / "figures" / name
+        assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
 
 
 def test_seeds_are_independent_replicates(study_dir):
@@ -151,10 +158,11 @@ def test_padding_does_not_change_training():
 
 def test_resume_reuses_everything_and_mismatches_are_refused(study_dir):
     before = (study_dir / "results.json").read_text()
-    again = cli("study", "--preset", "smoke", "--seeds", "2", "--first-seed", "3", "--run-dir",
-                str(study_dir), "--resume", "--no-progress")
+    again = cli("study", "--preset", "smoke", "--seeds", "2", "--first-seed", "3", "--methods",
+                "lazy,bc", "--run-dir", str(study_dir), "--resume", "--no-progress")
     assert again.returncode == 0, again.stderr[-3000:]
-    assert "lazy: cycle" not in again.stdout + again.stderr  # nothing retrained
+    log = again.stdout + again.stderr
+    assert "lazy: cycle" not in log and "bc: reusing its trained state" in log  # nothing retrained
     assert json.loads((study_dir / "results.json").read_text()) == json.loads(before)
     refused = cli("study", "--preset", "smoke", "--seeds", "2", "--first-seed", "3", "--run-dir",
                   str(study_dir), "--no-progress")
@@ -172,6 +180,13 @@ def test_argument_checks():
             check_seeds(seeds)
     with pytest.raises(ConfigError, match="unknown method"):
         check_methods(["lazy", "nope"])
+    with pytest.raises(ConfigError, match="field=value"):
+        check_methods(["iql:temperature"])
+    with pytest.raises(ConfigError, match="takes no options"):
+        check_methods(["lazy:train.clip=false"])
+    with pytest.raises(ConfigError, match="distinct"):
+        check_methods(["bc", "bc"])
+    assert parse_method("iql:temperature=10:budget=4") == ("iql", {"temperature": "10", "budget": "4"})
 
 
 def test_summary_of_hand_made_results():
