@@ -7,11 +7,32 @@ import jax
 import jax.numpy as jnp
 
 
-def encode(s: jax.Array, g: jax.Array, state_scale: float = 1.0) -> jax.Array:
-    """Network input ``(x / scale, y / scale, cos g, sin g)``: continuous across g = +-pi."""
-    g = jnp.asarray(g, jnp.float32)
-    return jnp.concatenate([jnp.asarray(s, jnp.float32) / state_scale,
-                            jnp.cos(g)[..., None], jnp.sin(g)[..., None]], axis=-1)
+def goal_kind(g) -> str | int | None:
+    """``"angle"`` for goals ``[N]`` (an angle), ``d_g`` for ``[N, d_g]`` (a vector), ``None``
+    for no goal: the shapes decide (the ``goal`` argument of :func:`make_train`)."""
+    if g is None:
+        return None
+    ndim = len(g.shape) if hasattr(g, "shape") else len(g)
+    if ndim == 1:
+        return "angle"
+    if ndim == 2:
+        return int(g.shape[1])
+    raise ValueError(f"goals must be [N] (an angle) or [N, d_g] (a vector), got shape {g.shape}")
+
+
+def encode(s: jax.Array, g: jax.Array | None, state_scale=1.0) -> jax.Array:
+    """Network input: the state divided by ``state_scale`` (a number or one per dimension),
+    then the goal: an angle ``g[...]`` as ``(cos g, sin g)`` (continuous across +-pi), a
+    vector ``g[..., d_g]`` as it is, or nothing for ``g = None``.  For the push task:
+    ``(x / scale, y / scale, cos g, sin g)``."""
+    parts = [jnp.asarray(s, jnp.float32) / jnp.asarray(state_scale, jnp.float32)]
+    if g is not None:
+        g = jnp.asarray(g, jnp.float32)
+        if g.ndim == parts[0].ndim - 1:  # an angle per row
+            parts += [jnp.cos(g)[..., None], jnp.sin(g)[..., None]]
+        else:
+            parts.append(g)
+    return jnp.concatenate(parts, axis=-1)
 
 
 class ValueNetwork(nn.Module):
@@ -19,7 +40,8 @@ class ValueNetwork(nn.Module):
 
     With the paper's ``depth = 9``: Dense, BN, ReLU, ..., Dense(1); the last
     Dense is linear and outputs the value.  Call as ``apply(variables, s, g, train=...)``
-    with ``s: [B, 2]``, ``g: [B]``; returns ``V: [B]``.
+    with ``s: [B, d_s]`` and ``g: [B]`` (an angle), ``[B, d_g]`` (a vector) or ``None``
+    (see :func:`encode`); returns ``V: [B]``.
 
     The hidden Dense layers have no bias: batch norm subtracts the batch mean, so
     such a bias would get an exactly zero gradient and only drift with rounding
@@ -33,11 +55,11 @@ class ValueNetwork(nn.Module):
 
     width: int = 64
     depth: int = 9
-    state_scale: float = 1.0
+    state_scale: float | tuple[float, ...] = 1.0
     axis_name: str | None = None
 
     @nn.compact
-    def __call__(self, s: jax.Array, g: jax.Array, train: bool = False) -> jax.Array:
+    def __call__(self, s: jax.Array, g: jax.Array | None = None, train: bool = False) -> jax.Array:
         x = encode(s, g, self.state_scale)
         for _ in range(self.depth - 1):
             x = nn.Dense(self.width, use_bias=False)(x)  # BN's bias replaces it

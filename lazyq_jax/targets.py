@@ -17,7 +17,7 @@ from lazyq_jax.local_model import apply_projection, fit_local_linear, greedy_act
 from lazyq_jax.parallel import constrain, mesh_size, replicated, sharded
 from lazyq_jax.types import Transitions
 
-ValueFn = Callable[[jax.Array, jax.Array], jax.Array]  # (s [B, 2], g [B]) -> V [B]
+ValueFn = Callable[[jax.Array, jax.Array], jax.Array]  # (s [B, d_s], g [B] | [B, d_g] | None) -> V [B]
 
 
 def lazy_target(alpha, beta, values, action_length, clip=True):
@@ -81,10 +81,14 @@ def evaluate_in_batches(v: ValueFn, s, g, batch_size: int, mesh: Mesh | None = N
     batch_size = -(-min(batch_size, n) // d) * d
     n_b = -(-n // batch_size)
     pad = n_b * batch_size - n
-    s_b = jnp.pad(s, ((0, pad), (0, 0))).reshape(n_b, batch_size, s.shape[1])
-    g_b = jnp.pad(g, (0, pad)).reshape(n_b, batch_size)
+
+    def chunks(x):  # [N, ...] -> [n_b, batch_size, ...] (g may be None: no goals)
+        x = jnp.pad(x, ((0, pad),) + ((0, 0),) * (x.ndim - 1))
+        return x.reshape(n_b, batch_size, *x.shape[1:])
+
     chunk = sharded(mesh)
-    values = jax.lax.map(lambda sg: constrain(v(*constrain(sg, chunk)), chunk), (s_b, g_b))
+    values = jax.lax.map(lambda sg: constrain(v(*constrain(sg, chunk)), chunk),
+                         jax.tree.map(chunks, (s, g)))
     return constrain(values.reshape(-1)[:n], replicated(mesh))
 
 
@@ -103,7 +107,7 @@ def dataset_targets(v_target: ValueFn, data: Transitions, neighbours_idx, *, gam
     ``neighbours_idx``: int ``[N, k]`` (``find_neighbours(...).idx`` with the data as
     queries). ``projection``: optional ``precompute_projection(data.a[neighbours_idx])``
     (data-only, reusable every cycle); otherwise the fit is recomputed. ``v_*`` are
-    callables ``(s [B, 2], g [B]) -> V [B]``, e.g. ``functools.partial(net.apply, params)``,
+    callables ``(s [B, d_s], g) -> V [B]``, e.g. ``functools.partial(net.apply, params)``,
     evaluated in chunks of ``batch_size``. Traceable: wrap the caller in ``jax.jit``.
     ``mesh``: split the work over its devices (see :func:`local_fits`).
     """

@@ -30,6 +30,7 @@ from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax import struct
 from jax.sharding import Mesh, PartitionSpec as P
@@ -41,11 +42,6 @@ from lazyq_jax.local_model import safe_norm
 from lazyq_jax.targets import double_dqn_target, lazy_target, local_fits
 from lazyq_jax.types import Transitions
 
-# Probe points (s, g) whose values are logged every cycle: finger behind the disk for
-# goals 0 and pi/2 (should become valuable), the same spots for the opposite goals, and
-# a finger far from the disk.
-PROBE_S = ((-0.35, 0.0), (0.0, -0.35), (-0.35, 0.0), (0.0, -0.35), (0.9, 0.9))
-PROBE_G = (0.0, jnp.pi / 2, jnp.pi, -jnp.pi / 2, 0.0)
 
 
 @struct.dataclass
@@ -67,7 +63,7 @@ class Trainer(NamedTuple):
     epoch: Callable  # epoch(state, data, y, key, n_valid) -> (state, mean loss): one shuffled pass
     run_cycle: Callable
     train: Callable
-    value_fn: Callable  # value_fn(state) -> V(s[B, 2], g[B]) in inference mode
+    value_fn: Callable  # value_fn(state) -> V(s[B, d_s], g) in inference mode
 
 
 def shuffle(key: jax.Array, n: int, n_valid: jax.Array) -> jax.Array:
@@ -94,11 +90,19 @@ def check_mesh(config: TrainConfig, mesh: Mesh | None) -> None:
     check_divisible("train.target_batch_size", config.target_batch_size, mesh)
 
 
-def make_train(config: TrainConfig, action_length: float, *, state_scale: float = 1.0,
+def make_train(config: TrainConfig, action_length: float, *, state_dim: int = 2,
+               goal: str | int | None = "angle", state_scale=1.0, probes=None,
                progress: Callable[[int], None] | None = None, mesh: Mesh | None = None) -> Trainer:
     """Build the pure training functions for ``config`` (see module docstring).
 
-    ``action_length`` is ``c`` in ``max_{|a|<=c} beta.a = c|beta|`` (Eq. 7).
+    ``action_length`` is ``c`` in ``max_{|a|<=c} beta.a = c|beta|`` (Eq. 7): the action
+    set is the ball of radius ``c`` in ``n_a`` dimensions, for any ``n_a``.  The data:
+    states ``[N, state_dim]``; goals ``goal = "angle"`` (``g[N]``, periodic), an int
+    ``d_g`` (``g[N, d_g]``, Euclidean) or ``None`` (no goals; pass ``g = None``), as
+    :func:`lazyq_jax.networks.goal_kind` tells from a dataset.  ``state_scale``: the
+    states are divided by it (a number or one per dimension) before the network.
+    ``probes = (s[P, d_s], g)``: states whose values are logged every cycle
+    (``metrics["probe_values"]``).
     ``progress``, if given, is called on the host with the epoch number after every
     epoch (through ``jax.debug.callback``) to drive a progress bar.
 
@@ -116,7 +120,14 @@ def make_train(config: TrainConfig, action_length: float, *, state_scale: float 
         raise TypeError(f"make_train needs a TrainConfig, got {type(config).__name__}")
     check_mesh(config, mesh)
     d = mesh_size(mesh)
-    network = ValueNetwork(width=config.width, depth=config.depth, state_scale=state_scale)
+    if not (isinstance(state_dim, int) and state_dim >= 1):
+        raise ValueError(f"state_dim must be an integer >= 1, got {state_dim!r}")
+    if not (goal in ("angle", None) or (isinstance(goal, int) and goal >= 1)):
+        raise ValueError(f"goal must be 'angle', None or a vector dimension >= 1, got {goal!r}")
+    scale = tuple(np.broadcast_to(np.asarray(state_scale, np.float64), (state_dim,)).tolist())
+    network = ValueNetwork(width=config.width, depth=config.depth,
+                           state_scale=scale[0] if len(set(scale)) == 1 else scale)
+    example_g = None if goal is None else jnp.zeros((1,) if goal == "angle" else (1, goal))
     # The training forward pass of one device's share (batch norm synchronised over the mesh).
     train_network = network if mesh is None else network.clone(axis_name=AXIS)
     optimizer = optax.adam(config.learning_rate)
@@ -126,7 +137,7 @@ def make_train(config: TrainConfig, action_length: float, *, state_scale: float 
             key = jax.random.key_data(key)
         key = jnp.asarray(key, jnp.uint32)
         key, k_init = jax.random.split(key)
-        variables = network.init(k_init, jnp.zeros((1, 2)), jnp.zeros((1,)), train=False)
+        variables = network.init(k_init, jnp.zeros((1, state_dim)), example_g, train=False)
         params = variables["params"]
         return TrainState(params=params, batch_stats=variables["batch_stats"],
                           opt_state=optimizer.init(params), key=key, cycle=jnp.int32(0))
@@ -163,8 +174,9 @@ def make_train(config: TrainConfig, action_length: float, *, state_scale: float 
         def minibatch(carry, i):
             params, batch_stats, opt_state = carry
             rows = jax.lax.dynamic_slice_in_dim(perm, i * batch + first, share)
+            g = None if data.g is None else data.g[rows]
             (loss, new_stats), grads = jax.value_and_grad(loss_fn, has_aux=True)(
-                params, batch_stats, data.s[rows], data.g[rows], y[rows])
+                params, batch_stats, data.s[rows], g, y[rows])
             updates, new_opt = optimizer.update(mean_over_mesh(grads), opt_state, params)
             new = (optax.apply_updates(params, updates), new_stats, new_opt)
             live = i < live_batches  # batches past a padded dataset's end change nothing
@@ -213,7 +225,6 @@ def make_train(config: TrainConfig, action_length: float, *, state_scale: float 
         state, (losses, (y_mean, y_std, clip_frac)) = jax.lax.scan(
             one_epoch, state, (epochs, jax.random.split(k_epochs, config.epochs)))
         state = state.replace(key=key, cycle=state.cycle + 1)
-        probes = value_fn(state)(jnp.asarray(PROBE_S, jnp.float32), jnp.asarray(PROBE_G, jnp.float32))
         metrics = {  # targets: those of the last epoch (all epochs' for DQN are the same)
             "loss": losses[-1],
             "loss_first_epoch": losses[0],
@@ -221,8 +232,9 @@ def make_train(config: TrainConfig, action_length: float, *, state_scale: float 
             "target_std": y_std[-1],
             "clip_fraction": clip_frac[-1],
             "beta_norm_mean": masked_mean(safe_norm(beta), valid),
-            "probe_values": probes,
         }
+        if probes is not None:
+            metrics["probe_values"] = value_fn(state)(*probes)
         return state, metrics
 
     def train(key: jax.Array, data: Transitions, idx: jax.Array, n_valid: jax.Array | None = None):
@@ -239,7 +251,15 @@ def valid_rows(data: Transitions, n_valid: jax.Array | None) -> jax.Array:
     return jnp.asarray(data.r.shape[0] if n_valid is None else n_valid, jnp.int32)
 
 
+# Probe points (s, g) of the push task whose values are logged every cycle: finger behind
+# the disk for goals 0 and pi/2 (should become valuable), the same spots for the opposite
+# goals, and a finger far from the disk.
+PUSH_PROBES = (((-0.35, 0.0), (0.0, -0.35), (-0.35, 0.0), (0.0, -0.35), (0.9, 0.9)),
+               (0.0, np.pi / 2, np.pi, -np.pi / 2, 0.0))
+
+
 def make_train_for(config: Config, **kwargs) -> Trainer:
     """:func:`make_train` for a whole run :class:`Config` of the push task."""
+    probes = tuple(jnp.asarray(x, jnp.float32) for x in PUSH_PROBES)
     return make_train(config.train, config.collect.push.action_length,
-                      state_scale=config.collect.start_range, **kwargs)
+                      state_scale=config.collect.start_range, probes=probes, **kwargs)

@@ -13,21 +13,23 @@ class Transitions:
 
     All leaves share the leading dimension ``N``:
 
-    * ``s, a, s_next``: float32 ``[N, 2]``: state (finger position relative to the
-      disk), action (finger move) and next state.
+    * ``s, s_next``: float32 ``[N, d_s]``: state and next state (for the push task
+      ``d_s = 2``, the finger position relative to the disk).
+    * ``a``: float32 ``[N, n_a]``: the action (a finger move, a joint move, ...).
     * ``r``: float32 ``[N]``: the reward ``R(s, a, g)`` (Eq. 15 for the push task).
-    * ``g``: float32 ``[N]``: the goal, an angle in ``[-pi, pi)``.
+    * ``g``: the goal: float32 ``[N]`` an angle in ``[-pi, pi)`` (periodic), float32
+      ``[N, d_g]`` a vector (Euclidean), or ``None`` (no goal).
     * ``done``: bool ``[N]``: terminal transition (not bootstrapped).
 
-    Nothing here is specific to the push task: any ``Transitions`` with these
-    shapes works with the lazy core and training code.
+    Nothing here is specific to a task: any ``Transitions`` works with the lazy core
+    and the training code.
     """
 
     s: jax.Array
     a: jax.Array
     s_next: jax.Array
     r: jax.Array
-    g: jax.Array
+    g: jax.Array | None
     done: jax.Array
 
     @property
@@ -38,7 +40,8 @@ class Transitions:
         """The canonical dtypes (float32 arrays, bool ``done``)."""
         f = lambda x: jnp.asarray(x, jnp.float32)
         return Transitions(
-            s=f(self.s), a=f(self.a), s_next=f(self.s_next), r=f(self.r), g=f(self.g),
+            s=f(self.s), a=f(self.a), s_next=f(self.s_next), r=f(self.r),
+            g=None if self.g is None else f(self.g),
             done=jnp.asarray(self.done, bool),
         )
 
