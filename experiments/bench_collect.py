@@ -9,7 +9,13 @@ steps/s, the MJX/native ratios and the largest and 99th-percentile difference of
 final disk positions, then the jit compile time of the collection function and
 one paper-scale ``collect`` call.
 
-    .venv/bin/python experiments/bench_collect.py [--batches 1024 4096 16384] [--repeats 3]
+``--world forgiving`` (MuJoCo's own drag) compares speeds with ``mujoco.rollout``;
+``--world paper`` (the default; Coulomb friction that we set before every
+substep) has no fast native path: its native reference steps one push at a time
+from Python on the first ``--native-max`` pushes, for agreement only.
+
+    .venv/bin/python experiments/bench_collect.py [--world paper|forgiving]
+        [--batches 1024 4096 16384] [--repeats 3]
 """
 
 from __future__ import annotations
@@ -24,7 +30,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from lazyq_jax.config import CollectConfig
+from lazyq_jax.config import FORGIVING_PUSH, CollectConfig, PushConfig
 from lazyq_jax.data import _episode_keys, collect, make_episode_fn
 from lazyq_jax.env import PushEnv
 from lazyq_jax.env.native import native_push
@@ -56,9 +62,17 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--batches", type=int, nargs="+", default=[1024, 4096, 16384])
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--world", choices=["paper", "forgiving"], default="paper",
+                    help="paper: Coulomb friction, set from Python per substep in native MuJoCo "
+                    "(a reference on at most --native-max pushes, not a speed comparison); "
+                    "forgiving: MuJoCo's own drag, native rollout on 1 and 2 threads")
+    ap.add_argument("--native-max", type=int, default=512)
     args = ap.parse_args()
+    world = PushConfig() if args.world == "paper" else FORGIVING_PUSH
+    make_env = lambda: PushEnv(world)
 
-    steps = PushEnv().config.substeps
+    steps = world.substeps
+    print(f"world: {args.world} ({world.friction})")
     print(f"jax {jax.__version__} on {jax.devices()[0].platform} x{jax.local_device_count()}, "
           f"mujoco {mujoco.__version__}; {steps} physics steps per push")
     print(f"{'pushes':>7} {'set':>8} {'MJX':>7} | {'MJX pushes/s':>12} {'steps/s':>9} | "
@@ -69,23 +83,26 @@ def main():
         for contact in (False, True):
             start, action = pushes(rng, batch, contact)
             zeros = np.zeros_like(start)
-            env = PushEnv()
+            env = make_env()
             rates = {}
+            # The Coulomb world's native reference steps one push at a time from Python.
+            n_native = batch if world.friction == "fluid" else min(batch, args.native_max)
             for nthread in (1, 2):
                 datas = [mujoco.MjData(env.mj_model) for _ in range(nthread)]
-                t_nat, final = timed(lambda: native_push(env, start, zeros, action, nthread, datas),
-                                     args.repeats)
-                rates[nthread] = batch * steps / t_nat
+                t_nat, final = timed(lambda: native_push(env, start[:n_native], zeros[:n_native],
+                                                         action[:n_native], nthread, datas),
+                                     args.repeats if n_native == batch else 1)
+                rates[nthread] = n_native * steps / t_nat
             for x64 in (True, False):
                 with jax.enable_x64(x64):
-                    env = PushEnv()
+                    env = make_env()
                     step = jax.jit(jax.vmap(env.step))
                     state, act = env.reset(jnp.asarray(start)), jnp.asarray(action)
                     jax.block_until_ready(step(state, act))  # compile outside the timing
                     t_mjx, (_, delta) = timed(lambda: jax.block_until_ready(step(state, act)),
                                               args.repeats)
                 mjx_rate = batch * steps / t_mjx
-                diff = np.linalg.norm(np.asarray(delta, np.float64) - final, axis=1)
+                diff = np.linalg.norm(np.asarray(delta, np.float64)[:n_native] - final, axis=1)
                 moved = np.mean(np.linalg.norm(final, axis=1) >= 0.01)
                 print(f"{batch:>7} {'contact' if contact else 'collect':>8} "
                       f"{'float64' if x64 else 'float32':>7} | {batch / t_mjx:>12,.0f} "
@@ -93,7 +110,7 @@ def main():
                       f"{mjx_rate / rates[2]:>8.2f} {mjx_rate / rates[1]:>8.2f} | "
                       f"{diff.max():>10.2e} {np.quantile(diff, 0.99):>10.2e} {moved:>6.1%}")
 
-    cfg = CollectConfig()
+    cfg = CollectConfig(push=world)
     chunk = math.ceil(cfg.n_starts / math.ceil(cfg.n_starts / cfg.chunk_size))
     with jax.enable_x64(cfg.push.float64):
         keys = _episode_keys(jax.random.PRNGKey(0), 0, chunk)

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import contextlib
-import functools
 import json
 import math
 import os
 import zipfile
 from pathlib import Path
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -72,14 +72,46 @@ def _episode_keys(key: jax.Array, first: int, count: int) -> jax.Array:
     return jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.arange(first, first + count))
 
 
-@functools.lru_cache(maxsize=8)
-def _collector(config: CollectConfig, mesh: Mesh | None):
-    """The jitted batch of episodes, kept so that collecting again does not recompile."""
-    episodes = jax.vmap(make_episode_fn(PushEnv(config.push), config))
-    if mesh is not None:  # no collectives: each device simulates its own chunk
-        episodes = jax.shard_map(episodes, mesh=mesh, in_specs=P(AXIS), out_specs=P(AXIS),
-                                 check_vma=False)
-    return jax.jit(episodes)
+_COLLECTORS: dict = {}
+
+
+def _collector(cache_key, make_episode: Callable, mesh: Mesh | None):
+    """The jitted batch of episodes, kept per ``cache_key`` (a hashable config) and mesh so
+    that collecting again does not recompile."""
+    if (cache_key, mesh) not in _COLLECTORS:
+        episodes = jax.vmap(make_episode())
+        if mesh is not None:  # no collectives: each device simulates its own chunk
+            episodes = jax.shard_map(episodes, mesh=mesh, in_specs=P(AXIS), out_specs=P(AXIS),
+                                     check_vma=False)
+        if len(_COLLECTORS) >= 8:
+            _COLLECTORS.pop(next(iter(_COLLECTORS)))
+        _COLLECTORS[(cache_key, mesh)] = jax.jit(episodes)
+    return _COLLECTORS[(cache_key, mesh)]
+
+
+def run_episodes(key: jax.Array, make_episode: Callable, cache_key, n: int, chunk_size: int, *,
+                 float64: bool, mesh: Mesh | None = None, progress: bool = True,
+                 desc: str = "collect (episodes)") -> dict:
+    """``n`` episodes of ``make_episode()`` (an unbatched ``episode(key) -> dict``) in jitted
+    batches of equal chunks of at most ``chunk_size``, one chunk per device and call;
+    episode ``i`` gets ``fold_in(key, i)``.  Returns the dict with leaves ``[n, ...]``
+    as NumPy.  The task's collectors (:func:`collect`, the arm's) are built on it."""
+    d = mesh_size(mesh)
+    chunk = math.ceil(n / math.ceil(n / chunk_size))  # equal chunks, little padding
+    n_calls = math.ceil(math.ceil(n / chunk) / d)
+    per_call = d * chunk
+    parts = []
+    bar = tqdm(total=n, desc=desc, unit="ep", disable=not progress, leave=False)
+    with _precision(float64):
+        run = _collector(cache_key, make_episode, mesh)
+        for c in range(n_calls):
+            keys = put(_episode_keys(key, c * per_call, per_call), sharded(mesh))
+            out = to_host(run(keys))
+            take = min(per_call, n - c * per_call)
+            parts.append({k: v[:take] for k, v in out.items()})
+            bar.update(take)
+    bar.close()
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
 def collect(key: jax.Array, config: CollectConfig = CollectConfig(), *, mesh: Mesh | None = None,
@@ -108,26 +140,16 @@ def collect(key: jax.Array, config: CollectConfig = CollectConfig(), *, mesh: Me
     """
     if not isinstance(config, CollectConfig):
         raise TypeError(f"collect needs a CollectConfig, got {type(config).__name__}")
-    n, d = config.n_starts, mesh_size(mesh)
-    chunk = math.ceil(n / math.ceil(n / config.chunk_size))  # equal chunks, little padding
-    n_calls = math.ceil(math.ceil(n / chunk) / d)
-    per_call = d * chunk
-    parts = []
-    bar = tqdm(total=n, desc="collect (episodes)", unit="ep", disable=not progress, leave=False)
-    with _precision(config.push.float64):
-        run = _collector(config, mesh)
-        for c in range(n_calls):
-            keys = put(_episode_keys(key, c * per_call, per_call), sharded(mesh))
-            out = to_host(run(keys))
-            take = min(per_call, n - c * per_call)
-            parts.append({k: v[:take] for k, v in out.items()})
-            bar.update(take)
-    bar.close()
-    eps = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-    return _to_transitions(eps, config)
+    make = lambda: make_episode_fn(PushEnv(config.push), config)
+    eps = run_episodes(key, make, config, config.n_starts, config.chunk_size,
+                       float64=config.push.float64, mesh=mesh, progress=progress)
+    return episodes_to_transitions(eps, config.n_goals)
 
 
-def _to_transitions(eps: dict, config: CollectConfig) -> Transitions:
+def episodes_to_transitions(eps: dict, n_goals: int) -> Transitions:
+    """Transitions of episodes (leaves ``[E, T, ...]``: ``s, a, s_next, delta, g, r, moved``),
+    each move relabelled for its ``n_goals`` goals, moves after one that moved the disk
+    dropped (the episode ended there)."""
     delta = eps["delta"]  # [E, T, 2]
     if not np.all(np.isfinite(delta)):
         bad = int(np.sum(~np.all(np.isfinite(delta), axis=-1)))
@@ -137,7 +159,6 @@ def _to_transitions(eps: dict, config: CollectConfig) -> Transitions:
     # A move exists if no earlier move of its episode moved the disk.
     ended_before = np.cumsum(moved, axis=1) - moved > 0
     keep = ~ended_before  # [E, T]
-    n_goals = config.n_goals
     per_move = lambda x: np.repeat(x[keep], n_goals, axis=0)
     return Transitions(
         s=jnp.asarray(per_move(eps["s"]), jnp.float32),
