@@ -13,7 +13,8 @@ seeds) instead of being trained again; the other methods train on those datasets
 
 The study writes ``<out>/results.json``, ``summary.md`` and ``figures/methods.png``.
 With ``--budget 4`` (and e.g. ``--seeds 2 --out runs/study_methods_4x --no-lazy``) it
-shows whether a method is budget-limited.
+shows whether a method is budget-limited.  ``--main none`` runs everything afresh in
+``<out>`` (collects the datasets and trains lazy Q there too: e.g. on another machine).
 """
 
 from __future__ import annotations
@@ -32,7 +33,8 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--budget", type=float, default=1.0)
-    ap.add_argument("--main", type=Path, default=Path("runs/study_paper"))
+    ap.add_argument("--main", type=Path, default=Path("runs/study_paper"),
+                    help="the study whose datasets and lazy Q are reused; 'none': afresh")
     ap.add_argument("--best", type=Path, default=Path("runs/baseline_sweep/best.json"))
     ap.add_argument("--out", type=Path, default=Path("runs/study_methods"))
     ap.add_argument("--methods", nargs="*",
@@ -51,10 +53,11 @@ def main():
             options = best.get(m, "")
             specs.append(":".join([m, *([options] if options else []),
                                    *([f"budget={args.budget:g}"] if args.budget != 1 else [])]))
-    main_seeds = json.loads((args.main / "results.json").read_text())["seeds"]
-    copy_datasets(args.main, args.out, seeds)
-    if not args.no_lazy and not args.set:  # the main study's lazy Q, these seeds
-        seed_slice_checkpoints(args.main, args.out, main_seeds, seeds, config)
+    if str(args.main) != "none":
+        main_seeds = json.loads((args.main / "results.json").read_text())["seeds"]
+        copy_datasets(args.main, args.out, seeds)
+        if not args.no_lazy and not args.set:  # the main study's lazy Q, these seeds
+            seed_slice_checkpoints(args.main, args.out, main_seeds, seeds, config)
     results = run_study(config, args.out, seeds=seeds, methods=specs, resume=True, progress=False)
     print(summary_markdown(results))
 
