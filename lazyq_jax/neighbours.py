@@ -545,10 +545,24 @@ def find_neighbours(key, data_s, data_g, query_s, query_g, *, k=20, radius_s=0.0
                     growth=2 ** (1 / 3), mesh: Mesh | None = None) -> Neighbours:
     """Neighbourhoods of paper §V-A-2 (see the module docstring for the exact semantics).
 
-    Builds the grid index (:func:`build_index`) and runs :func:`search_all`. Raises
-    ``ValueError`` before any compilation for bad shapes, NaN/inf coordinates,
-    ``k <= 0`` or ``k > N``, non-positive radii or ``growth <= 1``.
+    The shapes decide the space: states ``[N, d_s]``; goals ``[N]`` (an angle),
+    ``[N, d_g]`` (a vector, Euclidean) or ``None``.  Two-dimensional states with angle
+    goals (the push task) use this module's grid (:func:`build_index`,
+    :func:`search_all`); every other space goes to
+    :func:`lazyq_jax.neighbours_nd.find_neighbours_nd` (same semantics; ``mesh`` is
+    not supported there).  Raises ``ValueError`` before any compilation for bad
+    shapes, NaN/inf coordinates, ``k <= 0`` or ``k > N``, non-positive radii or
+    ``growth <= 1``.
     """
+    if not (np.ndim(data_s) == 2 and np.shape(data_s)[1] == 2 and data_g is not None
+            and np.ndim(data_g) == 1):
+        from lazyq_jax.neighbours_nd import find_neighbours_nd
+
+        if mesh is not None:
+            raise ValueError("mesh= is supported for 2-D states with angle goals only; drop it for "
+                             f"states {np.shape(data_s)} and goals {None if data_g is None else np.shape(data_g)}")
+        return find_neighbours_nd(key, data_s, data_g, query_s, query_g, k=k, radius_s=radius_s,
+                                  radius_g=radius_g, growth=growth)
     _check_points(query_s, query_g, "query")
     index = build_index(data_s, data_g, k=k, radius_s=radius_s, radius_g=radius_g, growth=growth, max_level=0)
     return search_all(index, key, query_s, query_g, mesh=mesh)
