@@ -99,6 +99,8 @@ def plot(all_curves: dict, path: Path) -> None:
                       "clip_fraction": "fraction of targets clipped (Eq. 8)"}[name])
         if name == "loss":
             ax.set_yscale("log")
+        if name == "target_mean":  # the unclipped targets grow by orders of magnitude
+            ax.set_yscale("symlog", linthresh=1.0)
     axes[0].legend(fontsize=8)
     fig.suptitle("Ablations over cycles: mean and 95 % CI over seeds")
     fig.savefig(path, dpi=110)

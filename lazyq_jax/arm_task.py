@@ -15,10 +15,11 @@ import jax
 import jax.numpy as jnp
 from jax.sharding import Mesh
 
-from lazyq_jax.config import CollectConfig
+from lazyq_jax.config import CollectConfig, EvalConfig
 from lazyq_jax.data import episodes_to_transitions, run_episodes
-from lazyq_jax.env.arm import ArmConfig, ArmEnv, sample_arm_start
+from lazyq_jax.env.arm import ArmConfig, ArmEnv, fingertip_xy, sample_arm_start
 from lazyq_jax.env.reward import disk_moved, push_reward
+from lazyq_jax.evaluate import Act, Rollouts, _directions, _rollout, direction_outcome
 from lazyq_jax.types import Transitions
 
 
@@ -65,3 +66,29 @@ def collect_arm(key: jax.Array, arm: ArmConfig = ArmConfig(),
                        float64=arm.push.float64, mesh=mesh, progress=progress,
                        desc="collect arm (episodes)")
     return episodes_to_transitions(eps, config.n_goals)
+
+
+def arm_protocol_a(env: ArmEnv, act: Act, key: jax.Array, cfg: EvalConfig) -> Rollouts:
+    """Protocol A (Fig. 4) for the arm: push the disk at the origin toward each of
+    ``cfg.n_directions`` goals, ``cfg.episodes_per_direction`` episodes each.
+
+    Starts: :func:`sample_arm_start` conditioned on the fingertip being behind the disk
+    (``fingertip . goal_direction < 0``), as the finger's starts in
+    :func:`lazyq_jax.evaluate.protocol_a`; ``act(key, q[B, 3], g[B])`` gives joint moves.
+    Outcomes as there (:func:`lazyq_jax.evaluate.direction_outcome`); ``Rollouts.finger``
+    holds the fingertip.  Summarise with :func:`lazyq_jax.evaluate.summarize_a`.
+    """
+    arm = env.config
+    goals = jnp.repeat(_directions(cfg.n_directions), cfg.episodes_per_direction)
+    k_start, k_run = jax.random.split(key)
+
+    def start(k, g):
+        behind = lambda q: fingertip_xy(q, arm) @ jnp.stack([jnp.cos(g), jnp.sin(g)]) < 0
+        return sample_arm_start(k, arm, extra=behind)
+
+    q0 = jax.vmap(start)(jax.random.split(k_start, goals.shape[0]), goals)
+    state = env.reset(q0)
+    outcome_of = direction_outcome(arm.push.cos_threshold, arm.push.move_threshold)
+    return _rollout(env, act, k_run, state, lambda st: goals, cfg.max_steps, outcome_of,
+                    jnp.zeros(goals.shape, bool), observe=lambda st: st.q,
+                    finger_of=lambda st: fingertip_xy(st.q, arm))

@@ -72,15 +72,22 @@ def protocol_a(env: PushEnv, act: Act, key: jax.Array, cfg: EvalConfig) -> Rollo
     state = env.reset(finger, jnp.zeros_like(finger))
     cos_min = env.config.cos_threshold
 
+    outcome_of = direction_outcome(cos_min, env.config.move_threshold)
+    done0 = jnp.zeros(goals.shape, bool)
+    return _rollout(env, act, k_run, state, lambda st: goals, cfg.max_steps, outcome_of, done0)
+
+
+def direction_outcome(cos_min: float, move_threshold: float):
+    """Protocol A's outcome of a push: ``(CORRECT or WRONG, ends)``; it ends when the disk
+    moved (``|delta| >= move_threshold``), correct when ``cos(delta, g) >= cos_min``."""
+
     def outcome_of(delta, g, new_state):
         # §V-B counts a push as correct when cos >= 0.9 (Eq. 15's reward demands > 0.9).
         cos = (jnp.sum(delta * jnp.stack([jnp.cos(g), jnp.sin(g)], -1), -1)
                / jnp.maximum(jnp.linalg.norm(delta, axis=-1), 1e-12))
-        return jnp.where(cos >= cos_min, CORRECT, WRONG), disk_moved(delta, threshold)
+        return jnp.where(cos >= cos_min, CORRECT, WRONG), disk_moved(delta, move_threshold)
 
-    threshold = env.config.move_threshold
-    done0 = jnp.zeros(goals.shape, bool)
-    return _rollout(env, act, k_run, state, lambda st: goals, cfg.max_steps, outcome_of, done0)
+    return outcome_of
 
 
 def protocol_b(env: PushEnv, act: Act, key: jax.Array, cfg: EvalConfig,
@@ -120,31 +127,34 @@ def protocol_b(env: PushEnv, act: Act, key: jax.Array, cfg: EvalConfig,
     return rollouts, target
 
 
-def _rollout(env, act, key, state, goal_of, steps, outcome_of, done0) -> Rollouts:
+def _rollout(env, act, key, state, goal_of, steps, outcome_of, done0, *,
+             observe=lambda st: st.relative, finger_of=lambda st: st.finger_xy) -> Rollouts:
     """Batched episodes in one ``lax.scan``; finished episodes stay frozen.
 
     ``done0[B]``: episodes that are already CORRECT before the first step.
+    ``observe(state)``: the agent's state ``s`` (the push task: the finger relative
+    to the disk); ``finger_of(state)``: the finger (or fingertip) on the table.
     """
-    batch = state.finger_xy.shape[0]
+    batch = done0.shape[0]
     step = jax.vmap(env.step)
 
     def body(carry, k):
         state, done, outcome, n_steps, lost = carry
         g = goal_of(state)
-        action, found = act(k, state.relative, g)
+        action, found = act(k, observe(state), g)
         new_state, delta = step(state, action)
         new_outcome, ends = outcome_of(delta, g, new_state)
         live = ~done
         state = jax.tree.map(lambda new, old: jnp.where(live[:, None], new, old), new_state, state)
         outcome = jnp.where(live & ends, new_outcome, outcome)
         carry = (state, done | ends, outcome, n_steps + live, lost + (live & ~found))
-        return carry, (state.finger_xy, state.disk_xy)
+        return carry, (finger_of(state), state.disk_xy)
 
     zeros = jnp.zeros(batch, jnp.int32)
     init = (state, done0, jnp.where(done0, CORRECT, NOT_PUSHED), zeros, zeros)
     (_, _, outcome, n_steps, lost), (fingers, disks) = jax.lax.scan(
         body, init, jax.random.split(key, steps))
-    fingers = jnp.concatenate([state.finger_xy[None], fingers])
+    fingers = jnp.concatenate([finger_of(state)[None], fingers])
     disks = jnp.concatenate([state.disk_xy[None], disks])
     return Rollouts(fingers, disks, outcome, n_steps, lost)
 

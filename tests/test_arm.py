@@ -237,3 +237,39 @@ def test_bad_inputs(arm):
                 {"action_length": 0.0}, {"link_lengths": (1.0, 1.0)}, {"start_range": 0.2}):
         with pytest.raises(ConfigError):
             ArmConfig(**bad)
+
+
+def test_protocol_a_for_the_arm():
+    # Starts behind the disk for each goal; a policy that never moves pushes nothing, a
+    # policy that always moves joint 1 (the whole arm swings) ends every episode that
+    # touches the disk with an outcome the disk's displacement explains.
+    from lazyq_jax.arm_task import arm_protocol_a
+    from lazyq_jax.config import EvalConfig
+    from lazyq_jax.evaluate import CORRECT, NOT_PUSHED, WRONG, summarize_a
+
+    env = ArmEnv(CFG)  # float32, as evaluations run
+    cfg = EvalConfig(n_directions=4, episodes_per_direction=3, max_steps=6)
+    still = lambda key, q, g: (jnp.zeros_like(q), jnp.ones(q.shape[0], bool))
+    ro = arm_protocol_a(env, still, jax.random.PRNGKey(0), cfg)
+    goals = np.repeat(np.arange(4) * np.pi / 2, 3)
+    tip0 = np.asarray(ro.finger[0])
+    assert (tip0 @ np.stack([np.cos(goals), np.sin(goals)]) < 0).diagonal().all()  # behind
+    assert (np.linalg.norm(tip0, axis=1) > env.config.contact_distance).all()
+    assert (np.asarray(ro.outcome) == NOT_PUSHED).all() and (np.asarray(ro.steps) == 6).all()
+    np.testing.assert_allclose(np.asarray(ro.disk), 0.0)
+
+    swing = lambda key, q, g: (jnp.tile(jnp.array([1.0, 0.0, 0.0]), (q.shape[0], 1)),
+                               jnp.ones(q.shape[0], bool))
+    ro = arm_protocol_a(env, swing, jax.random.PRNGKey(0), cfg)
+    outcome, disk = np.asarray(ro.outcome), np.asarray(ro.disk)
+    moved = outcome != NOT_PUSHED
+    final = disk[-1]  # frozen after the push that ended the episode (plus sub-threshold nudges)
+    assert moved.any()
+    cos = (final @ np.stack([np.cos(goals), np.sin(goals)])).diagonal() / np.maximum(
+        np.linalg.norm(final, axis=1), 1e-12)
+    agree = (cos >= 0.9) == (outcome == CORRECT)
+    assert (agree | (np.abs(cos - 0.9) < 0.05))[moved].all(), (cos, outcome)
+    assert (np.linalg.norm(final[~moved], axis=1) < env.config.push.move_threshold).all()
+    assert set(np.unique(outcome)) <= {NOT_PUSHED, CORRECT, WRONG}
+    summary = summarize_a(ro, cfg)
+    assert sum(r["correct"] + r["wrong"] + r["not_pushed"] for r in summary["per_goal"]) == goals.size
