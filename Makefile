@@ -3,12 +3,20 @@
 # stamp file makes re-runs skip the install unless pyproject.toml changed.
 # `make train` resumes its run directory: a finished run is only re-evaluated;
 # ARGS="--overwrite" starts it afresh, RUN=runs/other uses another directory.
+# TASK=arm trains the arm (joint-space pushing) afresh in runs/arm (no resume).
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 RUN ?= runs/paper
 ARGS ?=
+
+TASK ?= push
+ifeq ($(TASK),arm)
+TRAIN_FLAGS = --task arm --run-dir $(if $(filter command line,$(origin RUN)),$(RUN),runs/arm) --overwrite
+else
+TRAIN_FLAGS = --run-dir $(RUN) --resume
+endif
 
 SEEDS ?= 8
 STUDY ?= runs/study_paper
@@ -22,7 +30,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 train: $(STAMP)
-	$(PY) -m lazyq_jax train --run-dir $(RUN) --resume $(ARGS)
+	$(PY) -m lazyq_jax train $(TRAIN_FLAGS) $(ARGS)
 
 study: $(STAMP)
 	$(PY) -m lazyq_jax study --preset paper --seeds $(SEEDS) --run-dir $(STUDY) --resume $(ARGS)

@@ -90,7 +90,7 @@ def main():
                                  radius_g=args.radius_g, max_level=max(16, int(level.max()) + 4))
     eval_cfg = lq.EvalConfig(episodes_per_direction=args.episodes, max_steps=args.max_steps)
     env = ArmEnv(arm)
-    rollouts = arm_protocol_a(env, policy_act(policy), k_eval, eval_cfg)
+    rollouts, _ = arm_protocol_a(env, policy_act(policy), k_eval, eval_cfg)
     result = summarize_a(rollouts, eval_cfg)
     timings["protocol_a_s"] = time.perf_counter() - t
     out["protocol_a"] = result

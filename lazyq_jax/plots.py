@@ -176,3 +176,75 @@ def study_methods(results: dict, path: Path) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def arm_value(value_fn: Callable, arm, path: Path, goals=(np.pi / 2, 5 * np.pi / 4), n: int = 40000,
+              seed: int = 0) -> Path:
+    """The arm's V(q, g) over its fingertip workspace: random joint angles, each drawn at
+    its fingertip (inside the table, outside the disk), coloured by V; one panel per goal."""
+    from lazyq_jax.env.arm import fingertip_xy
+
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(arm.joint_lower, arm.joint_upper, (n, 3)).astype(np.float32)
+    tip = fingertip_xy(q, arm)
+    keep = (np.abs(tip).max(1) <= 1.0) & (np.linalg.norm(tip, axis=1) > arm.contact_distance)
+    q, tip = q[keep], tip[keep]
+    fig, axes = plt.subplots(1, len(goals), figsize=(5.5 * len(goals), 5), constrained_layout=True)
+    values = [np.asarray(value_fn(jnp.asarray(q), jnp.full(q.shape[0], g, jnp.float32))) for g in goals]
+    lo, hi = min(v.min() for v in values), max(v.max() for v in values)  # one scale for all panels
+    for ax, g, v in zip(np.atleast_1d(axes), goals, values):
+        order = np.argsort(v)  # high values on top
+        sc = ax.scatter(tip[order, 0], tip[order, 1], c=v[order], s=2, cmap="viridis", vmin=lo, vmax=hi)
+        ax.add_patch(plt.Circle((0, 0), arm.push.disk_radius, fill=False, color="k"))
+        ax.arrow(0, 0, 0.4 * np.cos(g), 0.4 * np.sin(g), width=0.02, color="w", ec="k")
+        ax.set_title(f"V(q, g = {_pi_fraction(g)}) at the fingertip of q (max over q: {v.max():.2f})")
+        ax.set_aspect("equal")
+        ax.set_xlim(-1, 1)
+        ax.set_ylim(-1, 1)
+    fig.colorbar(sc, ax=axes, shrink=0.8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def arm_trajectories(rollouts, q, arm, eval_cfg, path: Path, per_direction: int = 1) -> Path:
+    """Protocol A with the arm drawn: for the 4 axis and 4 diagonal goals, the first
+    ``per_direction`` episodes: the arm at its start (grey) and at its last step
+    (coloured by outcome), the fingertip's path and the disk's final position."""
+    from lazyq_jax.evaluate import CORRECT, WRONG
+
+    q, fingers, disks = np.asarray(q), np.asarray(rollouts.finger), np.asarray(rollouts.disk)
+    outcome, steps = np.asarray(rollouts.outcome), np.asarray(rollouts.steps)
+    n_dir, per = eval_cfg.n_directions, eval_cfg.episodes_per_direction
+    picks = [d * per + e for d in range(0, n_dir, max(n_dir // 8, 1)) for e in range(min(per_direction, per))]
+    cols = 4
+    rows = -(-len(picks) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 4 * rows), constrained_layout=True)
+    base = np.asarray(arm.base_xy)
+    lengths = np.asarray(arm.link_lengths)
+
+    def joints(qq):  # base, elbow, wrist, fingertip
+        th = np.cumsum(qq)
+        links = lengths[:, None] * np.stack([np.cos(th), np.sin(th)], 1)
+        return np.vstack([base, base + np.cumsum(links, 0)])
+
+    for ax, b in zip(np.ravel(axes), picks):
+        g = (b // per) * 2 * np.pi / n_dir
+        t = int(steps[b])
+        key = "correct" if outcome[b] == CORRECT else "wrong" if outcome[b] == WRONG else "not_pushed"
+        ax.plot(*joints(q[0, b]).T, "-o", color="0.6", ms=3)
+        ax.plot(*joints(q[t, b]).T, "-o", color=COLORS[key], ms=3)
+        ax.plot(fingers[: t + 1, b, 0], fingers[: t + 1, b, 1], ".-", color="C0", ms=2, lw=1)
+        ax.add_patch(plt.Circle((0, 0), arm.push.disk_radius, fill=False, color="0.6", ls="--"))
+        ax.add_patch(plt.Circle(tuple(disks[t, b]), arm.push.disk_radius, fill=False, color="k"))
+        ax.arrow(0, 0, 0.35 * np.cos(g), 0.35 * np.sin(g), width=0.015, color=COLORS[key])
+        ax.set_title(f"goal {np.degrees(g):.0f}°: {key.replace('_', ' ')} after {t} steps", fontsize=9)
+        ax.set_aspect("equal")
+        ax.set_xlim(-1.1, 1.1)
+        ax.set_ylim(-1.15, 1.1)
+    for ax in np.ravel(axes)[len(picks):]:
+        ax.axis("off")
+    fig.suptitle("Arm, protocol A: start (grey) and end pose, fingertip path (blue), disk (black)")
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

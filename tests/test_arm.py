@@ -250,7 +250,8 @@ def test_protocol_a_for_the_arm():
     env = ArmEnv(CFG)  # float32, as evaluations run
     cfg = EvalConfig(n_directions=4, episodes_per_direction=3, max_steps=6)
     still = lambda key, q, g: (jnp.zeros_like(q), jnp.ones(q.shape[0], bool))
-    ro = arm_protocol_a(env, still, jax.random.PRNGKey(0), cfg)
+    ro, q = arm_protocol_a(env, still, jax.random.PRNGKey(0), cfg)
+    np.testing.assert_allclose(np.asarray(ro.finger), np.asarray(fingertip_xy(q, CFG)), atol=1e-6)
     goals = np.repeat(np.arange(4) * np.pi / 2, 3)
     tip0 = np.asarray(ro.finger[0])
     assert (tip0 @ np.stack([np.cos(goals), np.sin(goals)]) < 0).diagonal().all()  # behind
@@ -260,7 +261,7 @@ def test_protocol_a_for_the_arm():
 
     swing = lambda key, q, g: (jnp.tile(jnp.array([1.0, 0.0, 0.0]), (q.shape[0], 1)),
                                jnp.ones(q.shape[0], bool))
-    ro = arm_protocol_a(env, swing, jax.random.PRNGKey(0), cfg)
+    ro, _ = arm_protocol_a(env, swing, jax.random.PRNGKey(0), cfg)
     outcome, disk = np.asarray(ro.outcome), np.asarray(ro.disk)
     moved = outcome != NOT_PUSHED
     final = disk[-1]  # frozen after the push that ended the episode (plus sub-threshold nudges)

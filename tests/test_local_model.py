@@ -4,6 +4,7 @@ import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from lazyq_jax.local_model import (
     RIDGE,
@@ -35,10 +36,11 @@ def test_matches_lstsq_on_well_conditioned_batches():
     np.testing.assert_allclose(np.asarray(beta).reshape(-1, 2), rb, rtol=1e-4, atol=1e-5)
 
 
-def test_general_n_a_uses_batched_solve():
-    rng = np.random.default_rng(1)
-    a = rng.normal(size=(50, 12, 3)).astype(np.float32)
-    v = rng.normal(size=(50, 12)).astype(np.float32)
+@pytest.mark.parametrize("n_a, k", [(1, 12), (3, 12), (7, 30)])
+def test_general_n_a_uses_batched_solve(n_a, k):
+    rng = np.random.default_rng(n_a)
+    a = rng.normal(size=(50, k, n_a)).astype(np.float32)
+    v = rng.normal(size=(50, k)).astype(np.float32)
     alpha, beta = fit_local_linear(a, v)
     ra, rb = ridge_reference(a, v)
     np.testing.assert_allclose(alpha, ra, rtol=1e-4, atol=1e-5)
