@@ -16,9 +16,8 @@ import jax.numpy as jnp
 from jax.sharding import Mesh
 
 from lazyq_jax.config import CollectConfig, EvalConfig
-from lazyq_jax.data import episodes_to_transitions, run_episodes
+from lazyq_jax.data import episodes_to_transitions, repeated_moves, run_episodes
 from lazyq_jax.env.arm import ArmConfig, ArmEnv, fingertip_xy, sample_arm_start
-from lazyq_jax.env.reward import disk_moved, push_reward
 from lazyq_jax.evaluate import Act, Rollouts, _directions, _rollout, direction_outcome
 from lazyq_jax.types import Transitions
 
@@ -32,19 +31,8 @@ def make_arm_episode_fn(env: ArmEnv, config: CollectConfig):
         q0 = sample_arm_start(k_start, arm)
         direction = jax.random.normal(k_dir, (3,), jnp.float32)
         action = arm.action_length * direction / jnp.linalg.norm(direction)
-        goals = jax.random.uniform(k_goal, (config.moves_per_start, config.n_goals), jnp.float32,
-                                   -jnp.pi, jnp.pi)
-
-        def move(state, _):
-            nxt, delta = env.step(state, action)
-            return nxt, (state.q, nxt.q, delta)
-
-        _, (s, s_next, delta) = jax.lax.scan(move, env.reset(q0), None,
-                                             length=config.moves_per_start)
-        reward = push_reward(delta[:, None, :], goals, move_threshold=pc.move_threshold,
-                             cos_threshold=pc.cos_threshold)
-        return {"s": s, "a": jnp.broadcast_to(action, s.shape), "s_next": s_next, "delta": delta,
-                "g": goals, "r": reward, "moved": disk_moved(delta, pc.move_threshold)}
+        return repeated_moves(env.step, env.reset(q0), action, k_goal, config, pc,
+                              observe=lambda st: st.q)
 
     return episode
 

@@ -16,7 +16,7 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec as P
 from tqdm.auto import tqdm
 
-from lazyq_jax.config import CollectConfig, ConfigError, from_dict, to_dict
+from lazyq_jax.config import CollectConfig, ConfigError, PushConfig, from_dict, to_dict
 from lazyq_jax.env import PushEnv, disk_moved, push_reward, sample_outside_disk
 from lazyq_jax.parallel import AXIS, mesh_size, put, sharded, to_host
 from lazyq_jax.types import Transitions
@@ -45,21 +45,30 @@ def make_episode_fn(env: PushEnv, config: CollectConfig):
         start = sample_outside_disk(k_start, jnp.zeros(2), config.start_range, pc.contact_distance)
         phi = jax.random.uniform(k_dir, (), jnp.float32, -jnp.pi, jnp.pi)
         action = pc.action_length * jnp.stack([jnp.cos(phi), jnp.sin(phi)])
-        goals = jax.random.uniform(k_goal, (config.moves_per_start, config.n_goals), jnp.float32,
-                                   -jnp.pi, jnp.pi)
-
-        def move(state, _):
-            nxt, delta = env.step(state, action)
-            return nxt, (state.relative, nxt.relative, delta)
-
-        _, (s, s_next, delta) = jax.lax.scan(move, env.reset(start), None,
-                                             length=config.moves_per_start)
-        reward = push_reward(delta[:, None, :], goals, move_threshold=pc.move_threshold,
-                             cos_threshold=pc.cos_threshold)
-        return {"s": s, "a": jnp.broadcast_to(action, s.shape), "s_next": s_next, "delta": delta,
-                "g": goals, "r": reward, "moved": disk_moved(delta, pc.move_threshold)}
+        return repeated_moves(env.step, env.reset(start), action, k_goal, config, pc,
+                              observe=lambda st: st.relative)
 
     return episode
+
+
+def repeated_moves(step, state, action, key, config: CollectConfig, push: PushConfig, observe):
+    """One §V-A-3 episode from ``state``: ``config.moves_per_start`` moves with ``action``
+    (``step(state, action) -> (state, disk_delta)``), each labelled with
+    ``config.n_goals`` goals uniform in ``[-pi, pi)`` and Eq. (15)'s rewards;
+    ``observe(state)`` is the agent's state ``s``.  Returns the episode's dict (leaves
+    ``[T, ...]``) for :func:`episodes_to_transitions`."""
+    goals = jax.random.uniform(key, (config.moves_per_start, config.n_goals), jnp.float32,
+                               -jnp.pi, jnp.pi)
+
+    def move(state, _):
+        nxt, delta = step(state, action)
+        return nxt, (observe(state), observe(nxt), delta)
+
+    _, (s, s_next, delta) = jax.lax.scan(move, state, None, length=config.moves_per_start)
+    reward = push_reward(delta[:, None, :], goals, move_threshold=push.move_threshold,
+                         cos_threshold=push.cos_threshold)
+    return {"s": s, "a": jnp.broadcast_to(action, s.shape), "s_next": s_next, "delta": delta,
+            "g": goals, "r": reward, "moved": disk_moved(delta, push.move_threshold)}
 
 
 def _precision(float64: bool):

@@ -123,6 +123,9 @@ class GridIndex:
 def _check_params(k, radius_s, radius_g, growth):
     if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k <= 0:
         raise ValueError(f"k must be a positive int, got {k!r}")
+    for name, v in (("radius_s", radius_s), ("radius_g", radius_g), ("growth", growth)):
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+            raise ValueError(f"{name} must be a real number, got {v!r}")  # noqa: TRY004 (one error type)
     for name, v in (("radius_s", radius_s), ("radius_g", radius_g)):
         if not np.isfinite(v) or v <= 0:
             raise ValueError(f"{name} must be a finite positive number, got {v!r}")

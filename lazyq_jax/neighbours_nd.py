@@ -116,7 +116,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from lazyq_jax.neighbours import TWO_PI, Neighbours, radius_tables, wrap_angle
+from lazyq_jax.neighbours import TWO_PI, Neighbours, _check_params, radius_tables, wrap_angle
 
 __all__ = ["GridAxis", "NDIndex", "build_index_nd", "find_neighbours_nd", "membership_level_reference",
            "search_all_nd"]
@@ -200,19 +200,6 @@ class NDIndex:
 
 
 # ----------------------------------------------------------------------------- validation
-
-
-def _check_params(k, radius_s, radius_g, growth):
-    if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k <= 0:
-        raise ValueError(f"k must be a positive int, got {k!r}")
-    for name, v in (("radius_s", radius_s), ("radius_g", radius_g), ("growth", growth)):
-        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-            raise ValueError(f"{name} must be a real number, got {v!r}")  # noqa: TRY004 (one error type)
-    for name, v in (("radius_s", radius_s), ("radius_g", radius_g)):
-        if not np.isfinite(v) or v <= 0:
-            raise ValueError(f"{name} must be a finite positive number, got {v!r}")
-    if not np.isfinite(growth) or growth <= 1:
-        raise ValueError(f"growth must be a finite number > 1 (radii grow each level), got {growth!r}")
 
 
 def _points(s, g, what):
