@@ -116,7 +116,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from lazyq_jax.neighbours import TWO_PI, Neighbours, _check_params, radius_tables, wrap_angle
+from lazyq_jax.neighbours import (TWO_PI, Neighbours, _check_params, _mix32, _select_bit, radius_tables,
+                                  wrap_angle)
 
 __all__ = ["GridAxis", "NDIndex", "build_index_nd", "find_neighbours_nd", "membership_level_reference",
            "search_all_nd"]
@@ -685,15 +686,6 @@ def _member_words(index: NDIndex, qcols, item_q, item_start, item_valid, lo: int
     return jnp.stack(red, axis=1)
 
 
-def _mix32(x):
-    """lowbias32 integer hash (uint32 -> uint32)."""
-    x = x ^ (x >> 16)
-    x = x * jnp.uint32(0x7FEB352D)
-    x = x ^ (x >> 15)
-    x = x * jnp.uint32(0x846CA68B)
-    return x ^ (x >> 16)
-
-
 def _mulhi32(a, b):
     """High 32 bits of the 64-bit product of two uint32 arrays (no x64 needed)."""
     m16 = jnp.uint32(0xFFFF)
@@ -719,16 +711,6 @@ def _floyd_ranks(seed, m, k: int):
         return jax.lax.dynamic_update_index_in_dim(cols, jnp.where(taken, j, t), i, axis=1)
 
     return jax.lax.fori_loop(0, k, draw, jnp.zeros(m.shape + (k,), jnp.int32))
-
-
-def _select_bit(word, r):
-    """Position of the ``r``-th (0-based) set bit of ``word``."""
-    pos = jnp.zeros_like(r)
-    for step in (16, 8, 4, 2, 1):
-        mid = pos + step
-        below = jax.lax.population_count(word & ((jnp.uint32(1) << mid.astype(jnp.uint32)) - 1))
-        pos = jnp.where(below.astype(jnp.int32) <= r, mid, pos)
-    return pos
 
 
 def _key_words(key):
