@@ -1,4 +1,5 @@
-"""The arm task's data: random joint-space pushes (§V-A-3 in joint space), relabelled for goals.
+"""The arm task: its data (random joint-space pushes, §V-A-3 in joint space, relabelled
+for goals), protocol A in joint space, and the whole run behind ``train --task arm``.
 
 The state is the joint angles ``q`` (``d_s = 3``) with the disk at its start position
 (the origin) for every push; the action is a joint move ``dq`` of norm
@@ -11,14 +12,27 @@ ends at a push that moves the disk.
 
 from __future__ import annotations
 
+import json
+import shutil
+import time
+from pathlib import Path
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.sharding import Mesh
 
-from lazyq_jax.config import CollectConfig, EvalConfig
-from lazyq_jax.data import episodes_to_transitions, repeated_moves, run_episodes
+from lazyq_jax import plots
+from lazyq_jax.checkpoint import save_checkpoint
+from lazyq_jax.config import CollectConfig, Config, EvalConfig, to_dict
+from lazyq_jax.data import dataset_summary, episodes_to_transitions, repeated_moves, run_episodes
 from lazyq_jax.env.arm import ArmConfig, ArmEnv, fingertip_xy, sample_arm_start
-from lazyq_jax.evaluate import Act, Rollouts, _directions, _rollout, direction_outcome
+from lazyq_jax.evaluate import (Act, Rollouts, _directions, _rollout, direction_outcome, eval_keys,
+                                policy_act, summarize_a)
+from lazyq_jax.neighbours import find_neighbours
+from lazyq_jax.pipeline import RunDirError, _log, run_keys
+from lazyq_jax.policy import make_lazy_policy
+from lazyq_jax.train import make_train
 from lazyq_jax.types import Transitions
 
 
@@ -94,7 +108,7 @@ def arm_state_scale(arm: ArmConfig) -> tuple[float, ...]:
     return tuple((hi - lo) / 2 for lo, hi in zip(arm.joint_lower, arm.joint_upper))
 
 
-def fit_arm(config, run_dir, *, overwrite: bool = False, progress: bool = True,
+def fit_arm(config: Config, run_dir: str | Path, *, overwrite: bool = False, progress: bool = True,
             radius_s: float = ARM_RADIUS_S, evaluate: bool = True) -> dict:
     """``train --task arm``: the arm's dataset, neighbourhoods, training (a checkpoint per
     cycle), protocol A and figures, for ``config.seed``.
@@ -107,23 +121,6 @@ def fit_arm(config, run_dir, *, overwrite: bool = False, progress: bool = True,
     checkpoints/, eval/results.json, figures/}``; returns the evaluation results.
     Resuming is not supported: an existing run is refused unless ``overwrite``.
     """
-    import json
-    import shutil
-    import time
-    from pathlib import Path
-
-    import numpy as np
-
-    from lazyq_jax import plots
-    from lazyq_jax.checkpoint import save_checkpoint
-    from lazyq_jax.config import to_dict
-    from lazyq_jax.data import dataset_summary
-    from lazyq_jax.evaluate import eval_keys, policy_act, summarize_a
-    from lazyq_jax.neighbours import find_neighbours
-    from lazyq_jax.pipeline import RunDirError, _log, run_keys
-    from lazyq_jax.policy import make_lazy_policy
-    from lazyq_jax.train import make_train
-
     run_dir = Path(run_dir)
     if (run_dir / "checkpoints").exists():
         if not overwrite:
