@@ -64,7 +64,7 @@ with contextlib.redirect_stdout(io.StringIO()):
     from mujoco import mjx
 
 from lazyq_jax.config import ConfigError, PushConfig
-from lazyq_jax.env.push import _is_concrete, _x64, coulomb_friction, normalize_action
+from lazyq_jax.env.push import _is_concrete, _x64, apply_push_config, coulomb_friction, normalize_action
 from lazyq_jax.env.reward import push_reward
 from lazyq_jax.env.sampling import rejection_sample
 
@@ -214,29 +214,6 @@ def _build_spec(config: ArmConfig) -> mujoco.MjSpec:
     return spec
 
 
-def _apply_push_config(model: mujoco.MjModel, config: PushConfig) -> None:
-    """The disk world of :func:`lazyq_jax.env.push.load_mj_model`, on the arm scene."""
-    geom = lambda name: mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name)
-    model.geom_size[geom("disk"), 0] = config.disk_radius
-    model.geom_size[geom("fingertip"), 0] = config.finger_radius
-    model.geom_size[geom("table"), :2] = config.table_half_size
-    body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "disk")
-    scale = config.disk_mass / model.body_mass[body]
-    model.body_mass[body] *= scale
-    model.body_inertia[body] *= scale
-    model.dof_damping[_dofs(model, ("disk_x", "disk_y"))] = config.damping
-    model.opt.density = config.anisotropy if config.friction == "fluid" else 0.0
-    model.pair_solref[0] = (config.contact_timeconst, config.contact_dampratio)
-    model.opt.timestep = config.timestep
-    model.opt.iterations = config.solver_iterations
-    model.opt.ls_iterations = config.ls_iterations
-
-
-def _dofs(model: mujoco.MjModel, names) -> np.ndarray:
-    return np.array([model.jnt_dofadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, n)]
-                     for n in names])
-
-
 def load_arm_models(config: ArmConfig = ArmConfig()) -> tuple[mujoco.MjModel, mujoco.MjModel]:
     """``(full, physics)`` native models of the scene, set to ``config``.
 
@@ -251,7 +228,7 @@ def load_arm_models(config: ArmConfig = ArmConfig()) -> tuple[mujoco.MjModel, mu
     spec.delete(spec.body("base"))  # with the links, their joints and the site "tip"
     physics = spec.compile()
     for model in (full, physics):
-        _apply_push_config(model, config.push)
+        apply_push_config(model, config.push, finger_geom="fingertip")
     return full, physics
 
 

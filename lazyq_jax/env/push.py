@@ -42,10 +42,17 @@ def load_mj_model(config: PushConfig = PushConfig()) -> mujoco.MjModel:
     """The native MuJoCo model of the scene shipped in the package, set to ``config``."""
     xml = importlib.resources.files("lazyq_jax.env").joinpath("assets", _SCENE).read_text()
     model = mujoco.MjModel.from_xml_string(xml)
+    apply_push_config(model, config)
+    return model
+
+
+def apply_push_config(model: mujoco.MjModel, config: PushConfig, finger_geom: str = "finger") -> None:
+    """Set the disk world of ``config`` on a native model holding the disk, the table and a
+    finger geom named ``finger_geom`` (the push scene, or the arm's with its fingertip)."""
     geom = lambda name: mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name)
     joint = lambda name: model.jnt_dofadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)]
     model.geom_size[geom("disk"), 0] = config.disk_radius
-    model.geom_size[geom("finger"), 0] = config.finger_radius
+    model.geom_size[geom(finger_geom), 0] = config.finger_radius
     model.geom_size[geom("table"), :2] = config.table_half_size
     body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "disk")
     # Scaling mass and inertia together keeps the drag's equivalent box (its size is
@@ -61,7 +68,6 @@ def load_mj_model(config: PushConfig = PushConfig()) -> mujoco.MjModel:
     model.opt.timestep = config.timestep
     model.opt.iterations = config.solver_iterations
     model.opt.ls_iterations = config.ls_iterations
-    return model
 
 
 def coulomb_friction(qvel, config: PushConfig):
