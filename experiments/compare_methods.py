@@ -41,6 +41,7 @@ def main():
                     default=["iql", "td3bc", "dqn", "naf", "bc", "random", "scripted"])
     ap.add_argument("--no-lazy", action="store_true", help="only the other methods")
     ap.add_argument("--set", action="append", default=[], help="lazy Q config override")
+    ap.add_argument("--progress", action="store_true", help="progress bars on stderr")
     args = ap.parse_args()
     seeds = list(range(args.seeds))
     config = override(preset("paper"), args.set)
@@ -58,7 +59,8 @@ def main():
         copy_datasets(args.main, args.out, seeds)
         if not args.no_lazy and not args.set:  # the main study's lazy Q, these seeds
             seed_slice_checkpoints(args.main, args.out, main_seeds, seeds, config)
-    results = run_study(config, args.out, seeds=seeds, methods=specs, resume=True, progress=False)
+    results = run_study(config, args.out, seeds=seeds, methods=specs, resume=True,
+                        progress=args.progress)
     print(summary_markdown(results))
 
 

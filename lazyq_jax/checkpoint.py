@@ -235,6 +235,8 @@ def _check_compatible(path: Path, stored: Config, expect: Config) -> None:
         diffs.append("collect config or seed differ (a different dataset)")
     if stored.neighbours != expect.neighbours:
         diffs.append("neighbours config differs")
+    if stored.online != expect.online:
+        diffs.append("online config differs (another sequence of datasets)")
     if diffs:
         raise CheckpointError(f"{path}: checkpoint does not match the requested config: "
                               + "; ".join(diffs))

@@ -64,6 +64,20 @@ def cmd_train(args) -> None:
         return
     run_dir = args.run_dir or Path("runs") / args.preset
     t = time.perf_counter()
+    if config.online.rounds:  # online lazy Q: the agent gathers its own pushes
+        from lazyq_jax.online import evaluate_online, fit_online
+
+        state, data, n_valid, fns = fit_online(config, run_dir, resume=args.resume,
+                                               overwrite=args.overwrite, progress=not args.no_progress)
+        print(f"trained in {time.perf_counter() - t:.1f} s")
+        if not args.no_eval:
+            r = evaluate_online(config, run_dir, state, data, n_valid, fns)
+            a, b = r["protocol_a"], r["protocol_b"]
+            print(f"protocol A (goal directions): axis correct {a['axis_correct_rate']:.1%}, all "
+                  f"{a['overall_correct_rate']:.1%}; protocol B (long horizon): {b['successes']}/"
+                  f"{b['rollouts']} ({r['seconds']:.0f} s) -> {run_dir / 'eval' / 'results.json'}")
+        print(f"run directory: {run_dir}")
+        return
     fit(config, run_dir, resume=args.resume, overwrite=args.overwrite,
         progress=not args.no_progress)
     print(f"trained in {time.perf_counter() - t:.1f} s")

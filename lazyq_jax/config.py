@@ -289,6 +289,50 @@ class ParallelConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class OnlineConfig:
+    """Online lazy Q-learning, beyond the paper (see :mod:`lazyq_jax.online`).
+
+    ``rounds = 0`` (default) is the paper's method: one static random dataset.  With
+    ``rounds > 0``, round 0 trains on the random dataset of ``collect`` for
+    ``train.cycles`` cycles; then each round rolls out the current lazy policy (Eq. 9)
+    in ``episodes`` batched episodes of at most ``max_steps`` moves, for goals uniform
+    in ``[-pi, pi)``, the disk at the origin and the finger uniform within
+    ``start_range`` of it, outside it, and (``start = "behind"``) on the side opposite
+    the goal (``"anywhere"``: any side).  Exploration per move: a uniformly random
+    direction with probability ``epsilon`` (and wherever the policy finds no
+    neighbourhood), else the greedy direction turned by Gaussian noise of
+    ``angle_noise`` radians.  Every move is relabelled for ``collect.n_goals`` goals
+    (Eq. 15, §V-A-3) and appended; then ``cycles`` training cycles continue from the
+    current parameters.  Each round adds at most ``(max_moves - round 0's moves) /
+    rounds`` simulated moves, so the dataset never exceeds ``max_moves`` moves.
+    ``eval_episodes``: episodes per direction of the per-round protocol A.
+    """
+
+    rounds: int = 0
+    episodes: int = 500
+    max_steps: int = 8
+    start: str = "behind"
+    start_range: float = 0.6
+    epsilon: float = 0.1
+    angle_noise: float = 0.05
+    cycles: int = 2
+    max_moves: int = 20000
+    eval_episodes: int = 10
+
+    def __post_init__(self) -> None:
+        _counts(self, "rounds", minimum=0)
+        _counts(self, "episodes", "max_steps", "cycles", "max_moves", "eval_episodes")
+        _check(self.start in ("behind", "anywhere"),
+               f"OnlineConfig.start must be 'behind' or 'anywhere', got {self.start!r}")
+        _positive(self, "start_range")
+        _check(isinstance(self.epsilon, (int, float)) and 0.0 <= self.epsilon <= 1.0,
+               f"OnlineConfig.epsilon (probability of a random move) must lie in [0, 1], "
+               f"got {self.epsilon!r}")
+        _check(isinstance(self.angle_noise, (int, float)) and self.angle_noise >= 0,
+               f"OnlineConfig.angle_noise (radians) must be >= 0, got {self.angle_noise!r}")
+
+
+@dataclasses.dataclass(frozen=True)
 class Config:
     """Everything one run needs; saved as JSON beside its dataset and checkpoints."""
 
@@ -298,10 +342,21 @@ class Config:
     train: TrainConfig = TrainConfig()
     eval: EvalConfig = EvalConfig()
     parallel: ParallelConfig = ParallelConfig()
+    online: OnlineConfig = OnlineConfig()
 
     def __post_init__(self) -> None:
         _check(_is_int(self.seed) and self.seed >= 0,
                f"Config.seed must be an integer >= 0, got {self.seed!r}")
+        o, c = self.online, self.collect
+        _check(o.start_range > c.push.contact_distance,
+               f"online.start_range={o.start_range} must exceed the finger-disk contact "
+               f"distance {c.push.contact_distance} so that finger starts outside the disk exist")
+        if o.rounds:
+            round0 = c.n_starts * c.moves_per_start
+            _check(o.max_moves > round0,
+                   f"online.max_moves={o.max_moves} leaves no moves for the online rounds: round 0 "
+                   f"may already hold collect.n_starts x moves_per_start = {round0}; raise "
+                   "online.max_moves or lower collect.n_starts")
         contact = self.collect.push.contact_distance
         for name in ("start_range", "long_finger_box"):
             value = getattr(self.eval, name)
@@ -322,6 +377,11 @@ PRESETS = {
     # The same scale in the world of lazyq-jax <= 0.1 (quadratic drag): diagonal goals keep
     # about half the axis goals' positives, and the agent learns to push them.
     "forgiving": Config(collect=CollectConfig(push=FORGIVING_PUSH)),
+    # Online lazy Q in the paper's world (lazyq_jax.online): round 0 a random dataset of
+    # 2500 starts (about 5,000 moves), then 5 rounds of the agent's own pushes, at most
+    # 20,000 simulated moves in all.
+    "online": Config(collect=CollectConfig(n_starts=2500),
+                     online=OnlineConfig(rounds=5, episodes=600, max_steps=8)),
     # Tiny end-to-end run for tests and CI (well under 2 minutes on 2 cores).
     "smoke": Config(
         collect=CollectConfig(n_starts=400, n_goals=20, start_range=0.7, chunk_size=400),

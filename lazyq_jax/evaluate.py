@@ -16,7 +16,7 @@ import numpy as np
 
 from lazyq_jax.checkpoint import CheckpointError, load_checkpoint
 from lazyq_jax.config import EvalConfig, PushConfig, to_dict
-from lazyq_jax.data import load_dataset
+from lazyq_jax.data import DatasetError, load_dataset
 from lazyq_jax.env import PushEnv, PushState, disk_moved, sample_outside_disk
 from lazyq_jax.policy import LazyPolicy, lazy_policy, make_lazy_policy
 from lazyq_jax.parallel import over_seeds
@@ -175,6 +175,20 @@ def summarize_a(rollouts: Rollouts, cfg: EvalConfig) -> dict:
             "non_finite_physics": int(np.sum(~np.all(np.isfinite(final), axis=-1)))}
 
 
+def direction_rates(summary_a: dict) -> dict:
+    """Protocol A's correct rates (of :func:`summarize_a`) over the axis goals (0, 90,
+    180, 270 degrees), the diagonal goals (45 + 90 k degrees) and all goals."""
+    goals = np.array([row["goal"] for row in summary_a["per_goal"]])
+    correct = np.array([row["correct"] for row in summary_a["per_goal"]])
+    total = np.array([row["correct"] + row["wrong"] + row["not_pushed"]
+                      for row in summary_a["per_goal"]])
+    diagonal = np.isclose(np.mod(goals, np.pi / 2), np.pi / 4, atol=1e-5)
+    rate = lambda m: float(correct[m].sum() / total[m].sum()) if m.any() else float("nan")
+    return {"axis_correct_rate": summary_a["axis_correct_rate"],
+            "diagonal_correct_rate": rate(diagonal),
+            "overall_correct_rate": summary_a["overall_correct_rate"]}
+
+
 def summarize_b(rollouts: Rollouts) -> dict:
     outcome = np.asarray(rollouts.outcome)
     final = np.asarray(rollouts.disk)[-1]
@@ -251,6 +265,18 @@ def evaluate_run(run_dir: str | Path, eval_config: EvalConfig | None = None, *,
     """Reload a run's checkpoint and dataset, run protocols A and B, write
     ``run_dir/eval/results.json`` (and figures into ``run_dir/figures``)."""
     run_dir = Path(run_dir)
+    try:
+        state, config = load_checkpoint(run_dir / "checkpoints")
+    except CheckpointError as e:
+        raise EvalError(f"{run_dir}: cannot evaluate: {e}") from e
+    if config.online.rounds:  # an online run: its policy acts on the data it gathered
+        from lazyq_jax.online import evaluate_online_run
+
+        config = dataclasses.replace(config, eval=eval_config or config.eval)
+        try:
+            return evaluate_online_run(run_dir, state, config, figures=figures)
+        except DatasetError as e:
+            raise EvalError(f"{run_dir}: cannot evaluate: {e}") from e
     config, state, trainer, data = load_run(run_dir)
     cfg = eval_config or config.eval
     t = time.perf_counter()

@@ -178,6 +178,45 @@ def study_methods(results: dict, path: Path) -> Path:
     return path
 
 
+def online_curve(runs: list[list[dict]], path: Path, static: dict | None = None) -> Path:
+    """Online lazy Q's learning curve: protocol A correct rates (all 16 goals, diagonal
+    goals) against the simulated moves in the dataset, one record per round
+    (:func:`lazyq_jax.online.read_rounds`).  Several runs (seeds) with the same rounds:
+    the mean and a 95 % Student-t band.  ``static``: ``{"moves": [...], "all": [(mean, lo,
+    hi), ...], "diagonal": [...]}``, the static random dataset of those sizes, drawn as
+    points with CI bars."""
+    from lazyq_jax.stats import t_interval
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig, ax = plt.subplots(figsize=(7, 4.2), constrained_layout=True)
+    n_rounds = min(len(r) for r in runs)
+    moves = np.mean([[rec["moves_total"] for rec in r[:n_rounds]] for r in runs], axis=0)
+    for key, label, colour in (("overall_correct_rate", "all 16 goals", "C0"),
+                               ("diagonal_correct_rate", "diagonal goals", "C3")):
+        rates = np.array([[rec["protocol_a"][key] for rec in r[:n_rounds]] for r in runs])
+        if not np.all(np.isfinite(rates)):  # e.g. no diagonal goals among the directions
+            continue
+        stats = [t_interval(rates[:, i]) for i in range(n_rounds)]
+        ax.plot(moves, [st["mean"] for st in stats], "o-", color=colour, label=f"online, {label}")
+        if len(runs) > 1:
+            ax.fill_between(moves, [st["ci95"][0] for st in stats], [st["ci95"][1] for st in stats],
+                            color=colour, alpha=0.2)
+        if static:
+            pts = static["all" if key == "overall_correct_rate" else "diagonal"]
+            m = np.array([p[0] for p in pts])
+            ax.errorbar(static["moves"], m, yerr=[m - [p[1] for p in pts], [p[2] for p in pts] - m],
+                        fmt="s--", color=colour, alpha=0.7, capsize=3, label=f"static random, {label}")
+    ax.set_xlabel("simulated moves in the dataset")
+    ax.set_ylabel("correct (protocol A, per-round episodes)")
+    ax.set_ylim(0, 1.05)
+    seeds = f"mean over {len(runs)} seeds, 95 % CI" if len(runs) > 1 else "one seed"
+    ax.set_title(f"Online lazy Q: correct pushes against data collected ({seeds})")
+    ax.legend(fontsize=8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def arm_value(value_fn: Callable, arm, path: Path, goals=(np.pi / 2, 5 * np.pi / 4), n: int = 40000,
               seed: int = 0) -> Path:
     """The arm's V(q, g) over its fingertip workspace: random joint angles, each drawn at

@@ -49,7 +49,7 @@ from lazyq_jax.checkpoint import load_latest_intact, save_checkpoint
 from lazyq_jax.config import Config, ConfigError, from_dict, override, to_dict
 from lazyq_jax.data import dataset_summary
 from lazyq_jax.env.scripted import scripted_push_policy
-from lazyq_jax.evaluate import evaluate_stacked, policy_act
+from lazyq_jax.evaluate import direction_rates, evaluate_stacked, policy_act
 from lazyq_jax.neighbours import build_index
 from lazyq_jax.parallel import over_seeds
 from lazyq_jax.pipeline import RunDirError, neighbours_for, prepare_dataset, run_keys, state_bounds
@@ -395,14 +395,9 @@ def run_baseline(spec: str, config: Config, run_dir: Path, sd: StudyData,
 def seed_rates(result: dict) -> dict:
     """The per-seed numbers a study reports, from one evaluation (``eval/results.json``)."""
     a, b = result["protocol_a"], result["protocol_b"]
-    goals = np.array([row["goal"] for row in a["per_goal"]])
     correct = np.array([row["correct"] for row in a["per_goal"]])
     total = np.array([row["correct"] + row["wrong"] + row["not_pushed"] for row in a["per_goal"]])
-    diagonal = np.isclose(np.mod(goals, np.pi / 2), np.pi / 4, atol=1e-5)
-    rate = lambda m: float(correct[m].sum() / total[m].sum()) if m.any() else float("nan")
-    return {"seed": result["seed"], "axis_correct_rate": a["axis_correct_rate"],
-            "diagonal_correct_rate": rate(diagonal),
-            "overall_correct_rate": a["overall_correct_rate"],
+    return {"seed": result["seed"], **direction_rates(a),
             "long_horizon_successes": b["successes"], "long_horizon_rollouts": b["rollouts"],
             "long_horizon_success_rate": b["successes"] / b["rollouts"],
             "per_direction_correct_rate": (correct / total).round(6).tolist(),
@@ -511,7 +506,34 @@ def _diff(a, b, prefix=""):
     return [] if a == b else [prefix.rstrip(".")]
 
 
+def run_online(config: Config, run_dir: Path, sd: StudyData, progress: bool = True) -> dict:
+    """Online lazy Q (``config.online.rounds > 0``) for every seed, one seed after another
+    (each seed's data grows with its own policy, so the seeds are not vmapped); round 0
+    is the seed's random dataset of the study.  Resumes per seed; writes the learning
+    curve over the seeds to ``figures/online_curve.png``."""
+    from lazyq_jax import plots
+    from lazyq_jax.online import evaluate_online, fit_online, read_rounds
+
+    per_seed, timings = [], {"train_s": 0.0, "eval_s": 0.0}
+    for seed in sd.seeds:
+        seed_dir, cfg = run_dir / "seeds" / str(seed), seed_config(config, seed)
+        _log(f"online lazy: seed {seed}")
+        t = time.perf_counter()
+        state, data, n_valid, fns = fit_online(cfg, seed_dir, resume=True, progress=progress)
+        timings["train_s"] += time.perf_counter() - t
+        t = time.perf_counter()
+        result = evaluate_online(cfg, seed_dir, state, data, n_valid, fns, figures=False)
+        timings["eval_s"] += time.perf_counter() - t
+        per_seed.append({k: result[k] for k in ("protocol_a", "protocol_b", "seed", "eval_config",
+                                                "moves")})
+    plots.online_curve([read_rounds(run_dir / "seeds" / str(s)) for s in sd.seeds],
+                       run_dir / "figures" / "online_curve.png")
+    return {"per_seed_eval": per_seed, "timings": {k: round(v, 1) for k, v in timings.items()}}
+
+
 def run_method(spec: str, config: Config, run_dir: Path, sd: StudyData, progress: bool) -> dict:
+    if spec == "lazy" and config.online.rounds:
+        return run_online(config, run_dir, sd, progress)
     if spec == "lazy":
         return run_lazy(config, run_dir, sd, progress)
     return run_baseline(spec, config, run_dir, sd, progress)
@@ -527,6 +549,11 @@ def run_study(config: Config, run_dir: str | Path, *, seeds: Sequence[int],
     ``results.json``.
     """
     seeds, methods = check_seeds(seeds), check_methods(methods)
+    learned = [m for m in methods if parse_method(m)[0] not in ("lazy", "random", "scripted")]
+    if config.online.rounds and learned:
+        raise ConfigError(f"an online study (online.rounds > 0) runs lazy, random and scripted; "
+                          f"{learned} would train on round 0's random data only: run them in an "
+                          "offline study")
     run_dir = Path(run_dir)
     _check_study_dir(run_dir, config, seeds, resume, overwrite)
     t = time.perf_counter()

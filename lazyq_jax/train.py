@@ -171,17 +171,21 @@ def make_train(config: TrainConfig, action_length: float, *, state_dim: int = 2,
         first = 0 if mesh is None else jax.lax.axis_index(AXIS) * share
         perm = shuffle(key, n, n_valid)  # the same on every device
 
-        def minibatch(carry, i):
+        def step(carry, i):
             params, batch_stats, opt_state = carry
             rows = jax.lax.dynamic_slice_in_dim(perm, i * batch + first, share)
             g = None if data.g is None else data.g[rows]
             (loss, new_stats), grads = jax.value_and_grad(loss_fn, has_aux=True)(
                 params, batch_stats, data.s[rows], g, y[rows])
             updates, new_opt = optimizer.update(mean_over_mesh(grads), opt_state, params)
-            new = (optax.apply_updates(params, updates), new_stats, new_opt)
-            live = i < live_batches  # batches past a padded dataset's end change nothing
-            keep = jax.tree.map(lambda a, b: jnp.where(live, a, b), new, carry)
-            return keep, jnp.where(live, loss, 0.0)
+            return (optax.apply_updates(params, updates), new_stats, new_opt), loss
+
+        def minibatch(carry, i):
+            # Batches past a padded dataset's end change nothing and are skipped (under
+            # vmap, cond becomes a select: computed, then dropped), so a dataset padded
+            # to a static capacity trains at the cost of its valid rows.
+            return jax.lax.cond(i < live_batches, step, lambda c, _: (c, jnp.float32(0.0)),
+                                carry, i)
 
         (params, batch_stats, opt_state), losses = jax.lax.scan(
             minibatch, (state.params, state.batch_stats, state.opt_state), jnp.arange(n_batches))
