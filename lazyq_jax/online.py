@@ -314,7 +314,7 @@ def fit_online(config: Config, run_dir: str | Path, *, resume: bool = False,
     _log(f"online: round 0 has {round0.size // n_goals:,} moves; {o.rounds} rounds of at most "
          f"{quota:,} moves (budget {o.max_moves:,}; {time.perf_counter() - t:.1f} s)")
     if state is None:
-        state = fns.trainer.init(run_keys(config)["train"])  # round 0 = pipeline.fit's run
+        state = fns.trainer.init(run_keys(config)["train"])  # the initial parameters of pipeline.fit
         metrics_path.write_text("")
         rounds_path.write_text("")
     else:
