@@ -183,7 +183,7 @@ def make_train(config: TrainConfig, action_length: float, *, state_dim: int = 2,
         def minibatch(carry, i):
             # Batches past a padded dataset's end change nothing and are skipped (under
             # vmap, cond becomes a select: computed, then dropped), so a dataset padded
-            # to a static capacity trains at the cost of its valid rows.
+            # to a static capacity costs the gradient steps of its valid rows only.
             return jax.lax.cond(i < live_batches, step, lambda c, _: (c, jnp.float32(0.0)),
                                 carry, i)
 
