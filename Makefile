@@ -3,7 +3,8 @@
 # stamp file makes re-runs skip the install unless pyproject.toml changed.
 # `make train` resumes its run directory: a finished run is only re-evaluated;
 # ARGS="--overwrite" starts it afresh, RUN=runs/other uses another directory.
-# TASK=arm trains the arm (joint-space pushing) afresh in runs/arm (no resume).
+# TASK=arm (or arm-long: the disk anywhere, long-horizon task too) trains the arm
+# (joint-space pushing) in runs/$(TASK), resuming it as `make train` does.
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -12,10 +13,10 @@ RUN ?= runs/paper
 ARGS ?=
 
 TASK ?= push
-ifeq ($(TASK),arm)
-TRAIN_FLAGS = --task arm --run-dir $(if $(filter command line,$(origin RUN)),$(RUN),runs/arm) --overwrite
-else
+ifeq ($(TASK),push)
 TRAIN_FLAGS = --run-dir $(RUN) --resume
+else
+TRAIN_FLAGS = --task $(TASK) --run-dir $(if $(filter command line,$(origin RUN)),$(RUN),runs/$(TASK)) --resume
 endif
 
 SEEDS ?= 8

@@ -145,7 +145,8 @@ def _read_meta(manager, path: Path) -> dict:
 def load_checkpoint(directory: str | os.PathLike, cycle: int | None = None,
                     expect: Config | None = None,
                     sharding: jax.sharding.Sharding | None = None, *,
-                    seeds: Sequence[int] | None = None) -> tuple[TrainState, Config]:
+                    seeds: Sequence[int] | None = None,
+                    target: TrainState | None = None) -> tuple[TrainState, Config]:
     """Restore ``(state, config)`` from ``directory`` (the newest cycle unless given).
 
     ``expect``: the config the caller is about to continue with (``--resume``); if
@@ -155,7 +156,10 @@ def load_checkpoint(directory: str | os.PathLike, cycle: int | None = None,
     ``sharding``: where the state goes (e.g. ``parallel.replicated(mesh)``; default:
     this process's first device).  A checkpoint restores on any device count,
     whatever wrote it.  A damaged or truncated checkpoint raises
-    :class:`CheckpointDamaged` (see :func:`load_latest_intact`).
+    :class:`CheckpointDamaged` (see :func:`load_latest_intact`).  ``target``: the
+    abstract state to restore into (e.g. ``jax.eval_shape(trainer.init, key)`` of a
+    task with another network input than the push task's; default
+    :func:`abstract_state` of the stored config), placed by ``sharding``.
     """
     directory = Path(directory)
     found = latest_cycle(directory)
@@ -181,7 +185,12 @@ def load_checkpoint(directory: str | os.PathLike, cycle: int | None = None,
             raise CheckpointError(f"{path}: holds {what(stored_seeds)}, expected {what(wanted)}")
         if expect is not None:
             _check_compatible(path, config, expect)
-        target = abstract_state(config, sharding, None if seeds is None else len(seeds))
+        if target is None:
+            target = abstract_state(config, sharding, None if seeds is None else len(seeds))
+        else:
+            place = sharding or jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+            target = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=place),
+                                  target)
         try:
             restored = manager.restore(cycle, args=ocp.args.Composite(
                 state=ocp.args.StandardRestore(target)))
@@ -197,7 +206,7 @@ def load_checkpoint(directory: str | os.PathLike, cycle: int | None = None,
 
 def load_latest_intact(directory: str | os.PathLike, expect: Config,
                        sharding: jax.sharding.Sharding | None = None, *,
-                       seeds: Sequence[int] | None = None,
+                       seeds: Sequence[int] | None = None, target: TrainState | None = None,
                        warn: Callable[[str], None] = print) -> tuple[TrainState, Config] | None:
     """The newest checkpoint under ``directory`` that is intact, for ``--resume``.
 
@@ -205,12 +214,13 @@ def load_latest_intact(directory: str | os.PathLike, expect: Config,
     ``<directory>_damaged/<cycle>`` (nothing is deleted) with a warning through
     ``warn``, and the next older one is tried.  A checkpoint that does not fit
     ``expect`` is an error (older ones would not fit either).  Returns None when
-    no intact checkpoint is left.
+    no intact checkpoint is left.  ``target``: as for :func:`load_checkpoint`.
     """
     directory = Path(directory)
     for cycle in reversed(all_cycles(directory)):
         try:
-            return load_checkpoint(directory, cycle, expect=expect, sharding=sharding, seeds=seeds)
+            return load_checkpoint(directory, cycle, expect=expect, sharding=sharding, seeds=seeds,
+                                   target=target)
         except CheckpointDamaged as e:
             aside = directory.parent / f"{directory.name}_damaged" / str(cycle)
             if jax.process_index() == 0:

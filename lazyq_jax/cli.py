@@ -51,15 +51,13 @@ def cmd_collect(args) -> None:
 
 def cmd_train(args) -> None:
     config = _config(args)
-    if args.task == "arm":
-        from lazyq_jax.arm_task import fit_arm
+    if args.task != "push":
+        from lazyq_jax.arm_task import ARM_TASKS, fit_arm
 
-        if args.resume:
-            raise ConfigError("train --task arm cannot --resume yet; rerun with --overwrite")
-        run_dir = args.run_dir or Path("runs") / f"arm_{args.preset}"
+        run_dir = args.run_dir or Path("runs") / f"{args.task}_{args.preset}"
         t = time.perf_counter()
-        fit_arm(config, run_dir, overwrite=args.overwrite, progress=not args.no_progress,
-                evaluate=not args.no_eval)
+        fit_arm(config, run_dir, task=ARM_TASKS[args.task], resume=args.resume,
+                overwrite=args.overwrite, progress=not args.no_progress, evaluate=not args.no_eval)
         print(f"arm: done in {time.perf_counter() - t:.1f} s; run directory: {run_dir}")
         return
     run_dir = args.run_dir or Path("runs") / args.preset
@@ -132,9 +130,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--overwrite", action="store_true",
                    help="delete the run directory's checkpoints and train afresh")
     p.add_argument("--no-eval", action="store_true", help="skip the evaluation after training")
-    p.add_argument("--task", choices=("push", "arm"), default="push",
-                   help="push: the finger (paper); arm: a 3-link arm pushing in joint space "
-                   "(dataset, neighbourhoods, training, protocol A, figures; no --resume)")
+    p.add_argument("--task", choices=("push", "arm", "arm-long"), default="push",
+                   help="push: the finger (paper); arm: a 3-link arm pushing in joint space, the "
+                   "disk at the origin (state q; protocol A); arm-long: the disk anywhere, its "
+                   "position in the state (protocol A and the long-horizon task)")
     p.set_defaults(func=cmd_train)
     p = sub.add_parser("study", help="the whole pipeline for several seeds at once; mean and 95 %% CI "
                        "per method -> RUN_DIR/results.json, summary.md, figures/")

@@ -67,7 +67,8 @@ def repeated_moves(step, state, action, key, config: CollectConfig, push: PushCo
     _, (s, s_next, delta) = jax.lax.scan(move, state, None, length=config.moves_per_start)
     reward = push_reward(delta[:, None, :], goals, move_threshold=push.move_threshold,
                          cos_threshold=push.cos_threshold)
-    return {"s": s, "a": jnp.broadcast_to(action, s.shape), "s_next": s_next, "delta": delta,
+    return {"s": s, "a": jnp.broadcast_to(action, s.shape[:1] + action.shape), "s_next": s_next,
+            "delta": delta,
             "g": goals, "r": reward, "moved": disk_moved(delta, push.move_threshold)}
 
 

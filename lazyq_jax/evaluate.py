@@ -17,7 +17,7 @@ import numpy as np
 from lazyq_jax.checkpoint import CheckpointError, load_checkpoint
 from lazyq_jax.config import EvalConfig, PushConfig, to_dict
 from lazyq_jax.data import DatasetError, load_dataset
-from lazyq_jax.env import PushEnv, PushState, disk_moved, sample_outside_disk
+from lazyq_jax.env import PushEnv, disk_moved, sample_outside_disk
 from lazyq_jax.policy import LazyPolicy, lazy_policy, make_lazy_policy
 from lazyq_jax.parallel import over_seeds
 from lazyq_jax.pipeline import purpose_key, state_bounds
@@ -108,8 +108,20 @@ def protocol_b(env: PushEnv, act: Act, key: jax.Array, cfg: EvalConfig,
     finger = jax.vmap(lambda k, d: sample_outside_disk(k, d, cfg.long_finger_box, contact))(
         jax.random.split(k_finger, b), disk)
     state = env.reset(finger, disk)
+    return long_horizon_rollout(env, act, k_run, state, target, cfg, table_half_size), target
 
-    def controller(st: PushState) -> jax.Array:
+
+def long_horizon_rollout(env, act, key: jax.Array, state, target: jax.Array, cfg: EvalConfig,
+                         table_half_size: float, **observe) -> Rollouts:
+    """Fig. 5's rollouts from ``state`` (any env whose state has ``disk_xy``): before each
+    step the high-level controller picks the axis goal (0, 90, 180 or 270 degrees)
+    closest to the direction from the disk to ``target [B, 2]``; an episode ends as a
+    success (CORRECT) when the disk is within ``success_radius`` of its target, as a
+    failure (WRONG) when it leaves the table or the physics is not finite, and is
+    NOT_PUSHED when ``long_max_steps`` run out.  ``observe``: :func:`_rollout`'s
+    ``observe`` / ``finger_of`` for other tasks than the finger."""
+
+    def controller(st) -> jax.Array:
         direction = target - st.disk_xy
         axes = jnp.stack([jnp.cos(AXIS_GOALS), jnp.sin(AXIS_GOALS)], -1)  # [4, 2]
         return jnp.asarray(AXIS_GOALS)[jnp.argmax(direction @ axes.T, axis=-1)]
@@ -122,9 +134,8 @@ def protocol_b(env: PushEnv, act: Act, key: jax.Array, cfg: EvalConfig,
         off = ~jnp.all(jnp.abs(new_state.disk_xy) <= table_half_size, axis=-1)  # NaN is off too
         return jnp.where(ok, CORRECT, WRONG), ok | off
 
-    rollouts = _rollout(env, act, k_run, state, controller, cfg.long_max_steps, outcome_of,
-                        reached(disk))
-    return rollouts, target
+    return _rollout(env, act, key, state, controller, cfg.long_max_steps, outcome_of,
+                    reached(state.disk_xy), **observe)
 
 
 def _rollout(env, act, key, state, goal_of, steps, outcome_of, done0, *,

@@ -218,9 +218,10 @@ def online_curve(runs: list[list[dict]], path: Path, static: dict | None = None)
 
 
 def arm_value(value_fn: Callable, arm, path: Path, goals=(np.pi / 2, 5 * np.pi / 4), n: int = 40000,
-              seed: int = 0) -> Path:
+              seed: int = 0, state_of: Callable = lambda q: q) -> Path:
     """The arm's V(q, g) over its fingertip workspace: random joint angles, each drawn at
-    its fingertip (inside the table, outside the disk), coloured by V; one panel per goal."""
+    its fingertip (inside the table, outside the disk), coloured by V; one panel per goal.
+    ``state_of(q)``: the agent's state of joint angles ``q [n, 3]`` (the disk at the origin)."""
     from lazyq_jax.env.arm import fingertip_xy
 
     rng = np.random.default_rng(seed)
@@ -229,7 +230,8 @@ def arm_value(value_fn: Callable, arm, path: Path, goals=(np.pi / 2, 5 * np.pi /
     keep = (np.abs(tip).max(1) <= 1.0) & (np.linalg.norm(tip, axis=1) > arm.contact_distance)
     q, tip = q[keep], tip[keep]
     fig, axes = plt.subplots(1, len(goals), figsize=(5.5 * len(goals), 5), constrained_layout=True)
-    values = [np.asarray(value_fn(jnp.asarray(q), jnp.full(q.shape[0], g, jnp.float32))) for g in goals]
+    s = state_of(jnp.asarray(q))
+    values = [np.asarray(value_fn(s, jnp.full(q.shape[0], g, jnp.float32))) for g in goals]
     lo, hi = min(v.min() for v in values), max(v.max() for v in values)  # one scale for all panels
     for ax, g, v in zip(np.atleast_1d(axes), goals, values):
         order = np.argsort(v)  # high values on top
