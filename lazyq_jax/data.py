@@ -23,7 +23,9 @@ from lazyq_jax.types import Transitions
 
 DATASET_FORMAT = "lazyq-jax-dataset"
 DATASET_VERSION = 1
-_FIELDS = {"s": (np.float32, (2,)), "a": (np.float32, (2,)), "s_next": (np.float32, (2,)),
+# Per-row shapes; "d_s" / "n_a" stand for the stored state and action sizes (meta
+# "state_dim" / "action_dim"; 2 for files that predate them: the push task's).
+_FIELDS = {"s": (np.float32, ("d_s",)), "a": (np.float32, ("n_a",)), "s_next": (np.float32, ("d_s",)),
            "r": (np.float32, ()), "g": (np.float32, ()), "done": (np.bool_, ())}
 
 
@@ -208,7 +210,8 @@ def save_dataset(path: str | os.PathLike, data: Transitions, config: CollectConf
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = {"format": DATASET_FORMAT, "version": DATASET_VERSION, "config": to_dict(config),
-            "seed": seed, "rows": data.size}
+            "seed": seed, "rows": data.size, "state_dim": int(data.s.shape[1]),
+            "action_dim": int(data.a.shape[1])}
     arrays = {name: np.asarray(getattr(data, name)) for name in _FIELDS}
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as f:
@@ -243,7 +246,9 @@ def load_dataset(path: str | os.PathLike) -> tuple[Transitions, CollectConfig, i
         raise DatasetError(f"{path}: dataset version {meta.get('version')} but this lazyq-jax "
                            f"reads version {DATASET_VERSION}; re-collect it")
     rows = meta.get("rows")
+    sizes = {"d_s": meta.get("state_dim", 2), "n_a": meta.get("action_dim", 2)}
     for name, (dtype, tail) in _FIELDS.items():
+        tail = tuple(sizes.get(t, t) for t in tail)
         if name not in arrays:
             raise DatasetError(f"{path}: array {name!r} is missing")
         arr = arrays[name]
