@@ -43,6 +43,7 @@ from lazyq_jax.env.arm import ArmConfig, ArmEnv, ArmState, fingertip_xy, sample_
 from lazyq_jax.evaluate import (Act, Rollouts, _directions, _rollout, direction_outcome, eval_keys,
                                 long_horizon_rollout, policy_act, summarize_a, summarize_b)
 from lazyq_jax.neighbours import find_neighbours
+from lazyq_jax.networks import goal_kind
 from lazyq_jax.pipeline import RunDirError, _log, run_keys
 from lazyq_jax.policy import make_lazy_policy
 from lazyq_jax.train import make_train
@@ -272,7 +273,7 @@ def fit_arm(config: Config, run_dir: str | Path, *, task: ArmTask = ArmTask(), r
          f"{levels['histogram'][0] / level.size:.1%} at level 0 ({timings['neighbours_s']:.1f} s)")
 
     tc = config.train
-    trainer = make_train(tc, arm.action_length, state_dim=task.state_dim, goal="angle",
+    trainer = make_train(tc, arm.action_length, state_dim=data.s.shape[1], goal=goal_kind(data.g),
                          state_scale=task.state_scale(arm))
     state = None
     if resume and ckpt_dir.exists():
