@@ -65,7 +65,10 @@ class ArmTask:
         state dimensions).
       long_range: the long-horizon task's disk starts and targets, uniform in
         ``[-long_range, long_range]^2`` (at most ``disk_range``: the data must have
-        seen the disk there).  The arm reaches behind the disk everywhere in it.
+        seen the disk there).  The arm reaches behind the disk everywhere in it.  It
+        replaces ``EvalConfig.long_range`` (the finger's 0.6: beyond the arm's reach
+        behind a disk near the far corners); the rest of ``EvalConfig``'s long-horizon
+        settings apply as they are.
     """
 
     disk_range: float | None = None
