@@ -117,9 +117,10 @@ def make_arm_episode_fn(env: ArmEnv, config: CollectConfig, task: ArmTask = ArmT
     arm, pc = env.config, env.config.push
 
     def episode(key):
-        k_start, k_dir, k_goal, k_disk = jax.random.split(key, 4)
+        # Three keys with the disk at the origin: the arm task's data as before arm-long.
+        k_start, k_dir, k_goal, *k_disk = jax.random.split(key, 4 if task.disk_in_state else 3)
         disk = (jnp.zeros(2, jnp.float32) if not task.disk_in_state else
-                jax.random.uniform(k_disk, (2,), jnp.float32, -task.disk_range, task.disk_range))
+                jax.random.uniform(k_disk[0], (2,), jnp.float32, -task.disk_range, task.disk_range))
         q0 = sample_arm_start(k_start, arm, disk_xy=disk)
         direction = jax.random.normal(k_dir, (3,), jnp.float32)
         action = arm.action_length * direction / jnp.linalg.norm(direction)
