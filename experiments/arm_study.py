@@ -9,20 +9,29 @@ seeds run one after another and a study that was stopped continues where it stop
     .venv/bin/python experiments/arm_study.py --task arm-long --seeds 3 \\
         [--preset paper] [--set eval.long_rollouts=50 ...] [--out runs/arm_long_study]
 
+A reference that learns nothing runs beside each seed: uniformly random joint moves
+(``random_*`` entries), evaluated with ``eval.seed`` set to the seed (starts from the
+same distributions as the lazy runs', other draws per seed).
+
 Writes ``<out>/results.json`` (per seed and aggregated) and ``<out>/summary.md``.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
-from lazyq_jax.arm_task import ARM_TASKS, fit_arm
-from lazyq_jax.config import override, preset
-from lazyq_jax.evaluate import direction_rates
+from lazyq_jax.arm_task import ARM_TASKS, ArmTask, arm_protocol_a, arm_protocol_b
+from lazyq_jax.arm_task import fit_arm
+from lazyq_jax.config import Config, override, preset
+from lazyq_jax.env.arm import ArmConfig, ArmEnv
+from lazyq_jax.evaluate import CORRECT, direction_rates, eval_keys, summarize_a
 from lazyq_jax.parallel import enable_compilation_cache
 from lazyq_jax.stats import format_ci, t_interval
 
@@ -43,6 +52,25 @@ def seed_record(run: Path) -> dict:
         record["long_success_rate"] = b["successes"] / b["rollouts"]
         record["long"] = b
     return record
+
+
+def random_moves(key, s, g):
+    """Uniformly random joint-move directions (the env scales them to ``action_length``)."""
+    return jax.random.normal(key, (s.shape[0], 3)), jnp.ones(s.shape[0], bool)
+
+
+def random_reference(config: Config, task: ArmTask) -> dict:
+    """Protocol A (and the long-horizon task) of :func:`random_moves` with the evaluation
+    keys of ``eval.seed = config.seed``: what the tasks give to a policy that learns nothing."""
+    env = ArmEnv(ArmConfig(push=config.collect.push))
+    key_a, key_b = eval_keys(dataclasses.replace(config.eval, seed=config.seed))
+    rollouts, _ = arm_protocol_a(env, random_moves, key_a, config.eval, task)
+    rates = direction_rates(summarize_a(rollouts, config.eval))
+    out = {f"random_{k}": v for k, v in rates.items()}
+    if task.disk_in_state:
+        ro, _, _ = arm_protocol_b(env, random_moves, key_b, config.eval, task)
+        out["random_long_success_rate"] = float(np.mean(np.asarray(ro.outcome) == CORRECT))
+    return out
 
 
 def main() -> None:
@@ -66,10 +94,12 @@ def main() -> None:
             fit_arm(override(base, [f"seed={seed}"]), run, task=ARM_TASKS[args.task], resume=True,
                     progress=False)
         records[seed] = seed_record(run)
+        records[seed].update(random_reference(override(base, [f"seed={seed}"]), ARM_TASKS[args.task]))
     names = ["axis_correct_rate", "diagonal_correct_rate", "overall_correct_rate", "level_mean",
              "level0_fraction", "clip_fraction"]
     if all("long_success_rate" in r for r in records.values()):
         names.append("long_success_rate")
+    names += [n for n in records[min(records)] if n.startswith("random_")]
     # e.g. no diagonal goals with fewer than 8 directions
     names = [n for n in names if all(np.isfinite(r[n]) for r in records.values())]
     aggregate = {n: t_interval([r[n] for r in records.values()],
