@@ -241,27 +241,29 @@ def fit_arm(config: Config, run_dir: str | Path, *, task: ArmTask = ArmTask(), r
         raise ConfigError("choose one of resume and overwrite")
     meta = {"task": "arm", "arm_task": dataclasses.asdict(task), "arm_radius_s": radius_s,
             **to_dict(config)}
-    ckpt_dir = run_dir / "checkpoints"
+    ckpt_dir, meta_path = run_dir / "checkpoints", run_dir / "config.json"
+    stored = json.loads(meta_path.read_text()) if meta_path.exists() else {}
+    differ = [k for k in ("task", "arm_task", "arm_radius_s", "seed", "collect", "neighbours")
+              if stored.get(k) != meta[k]]
     if ckpt_dir.exists() and overwrite:
         shutil.rmtree(ckpt_dir)
     elif ckpt_dir.exists() and not resume:
         raise RunDirError(f"{run_dir} already holds an arm run; continue it with --resume, "
                           "replace it with --overwrite or pick another --run-dir")
     elif ckpt_dir.exists():
-        stored = json.loads((run_dir / "config.json").read_text())
-        differ = [k for k in ("task", "arm_task", "arm_radius_s", "seed", "collect", "neighbours")
-                  if stored.get(k) != meta[k]]
         if differ:
             raise RunDirError(f"{run_dir} holds an arm run with other {', '.join(differ)}; "
                               "resume it with its own settings, or use --overwrite")
+    # The saved dataset is this run's if the stored task, seed and collect settings are.
+    same_data = not {"task", "arm_task", "seed", "collect"} & set(differ)
     run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "config.json").write_text(json.dumps(meta, indent=1))
+    meta_path.write_text(json.dumps(meta, indent=1))
     arm = ArmConfig(push=config.collect.push)
     keys = run_keys(config)
     timings = {}
 
     t = time.perf_counter()
-    data = _arm_dataset(config, arm, task, run_dir, keys["collect"], progress)
+    data = _arm_dataset(config, arm, task, run_dir, keys["collect"], progress, reuse=same_data)
     timings["dataset_s"] = time.perf_counter() - t
 
     nc = config.neighbours
@@ -317,11 +319,12 @@ def fit_arm(config: Config, run_dir: str | Path, *, task: ArmTask = ArmTask(), r
 
 
 def _arm_dataset(config: Config, arm: ArmConfig, task: ArmTask, run_dir: Path, key: jax.Array,
-                 progress: bool) -> Transitions:
-    """``run_dir/dataset.npz`` when it holds this run's data (same collect settings and
-    seed; the task is checked by :func:`fit_arm`), else collected and saved there."""
+                 progress: bool, reuse: bool) -> Transitions:
+    """``run_dir/dataset.npz`` if ``reuse`` (the run directory's stored task matches) and
+    the file holds this run's data (collect settings, seed, state size), else collected
+    and saved there."""
     path = run_dir / "dataset.npz"
-    if path.exists():
+    if reuse and path.exists():
         try:
             data, stored, seed = load_dataset(path)
             if stored == config.collect and seed == config.seed and data.s.shape[1] == task.state_dim:

@@ -5,6 +5,7 @@ episodes and run inside ``lax.scan`` with done masks."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import time
 from pathlib import Path
@@ -271,6 +272,17 @@ def evaluate_stacked(push: PushConfig, cfg: EvalConfig, act_of: Callable, polici
     return per_seed, rollouts_b, targets
 
 
+@functools.lru_cache(maxsize=8)
+def _protocol_programs(push: PushConfig, cfg: EvalConfig):
+    """Jitted ``(run_a, run_b)(policy, key)`` per world and evaluation config, kept so
+    that evaluating again in one process (another checkpoint, the same shapes) does not
+    compile again."""
+    env = PushEnv(push)  # float32 physics here (see the README's design notes)
+    run_a = jax.jit(lambda p, k: protocol_a(env, policy_act(p), k, cfg))
+    run_b = jax.jit(lambda p, k: protocol_b(env, policy_act(p), k, cfg, push.table_half_size))
+    return run_a, run_b
+
+
 def evaluate_run(run_dir: str | Path, eval_config: EvalConfig | None = None, *,
                  figures: bool = True) -> dict:
     """Reload a run's checkpoint and dataset, run protocols A and B, write
@@ -291,12 +303,9 @@ def evaluate_run(run_dir: str | Path, eval_config: EvalConfig | None = None, *,
     config, state, trainer, data = load_run(run_dir)
     cfg = eval_config or config.eval
     t = time.perf_counter()
-    env = PushEnv(config.collect.push)  # float32 physics here (see the README's design notes)
     policy = run_policy(config, trainer.value_fn(state), data, cfg.max_level)
     k_a, k_b = eval_keys(cfg)
-    run_a = jax.jit(lambda p, k: protocol_a(env, policy_act(p), k, cfg))
-    run_b = jax.jit(lambda p, k: protocol_b(env, policy_act(p), k, cfg,
-                                            config.collect.push.table_half_size))
+    run_a, run_b = _protocol_programs(config.collect.push, cfg)
     rollouts_a = jax.device_get(run_a(policy, k_a))
     rollouts_b, targets = jax.device_get(run_b(policy, k_b))
     results = {"protocol_a": summarize_a(rollouts_a, cfg), "protocol_b": summarize_b(rollouts_b),

@@ -87,9 +87,18 @@ def _config(cycles: int):
                         long_max_steps=4))
 
 
-def test_fit_arm_resumes_as_if_never_stopped(tmp_path):
+def test_fit_arm_resumes_as_if_never_stopped(tmp_path, monkeypatch):
     run = tmp_path / "arm_long"
     fit_arm(_config(2), run, task=LONG, evaluate=False, progress=False)
+
+    # From here on, collecting stops the run: a resumed run reuses its saved dataset.
+    class Collected(Exception):
+        pass
+
+    def stub(*args, task, **kwargs):
+        raise Collected(task)
+
+    monkeypatch.setattr("lazyq_jax.arm_task.collect_arm", stub)
     with pytest.raises(RunDirError, match="--resume"):
         fit_arm(_config(3), run, task=LONG, progress=False)
     with pytest.raises(RunDirError, match="arm_radius_s"):
@@ -115,3 +124,7 @@ def test_fit_arm_resumes_as_if_never_stopped(tmp_path):
     resumed, _ = load_checkpoint(run / "checkpoints", target=jax.eval_shape(trainer.init, keys["train"]))
     assert int(resumed.cycle) == 3
     jax.tree.map(np.testing.assert_array_equal, resumed.params, state.params)
+
+    # Starting afresh with another disk range must not reuse the saved dataset.
+    with pytest.raises(Collected):
+        fit_arm(_config(1), run, task=ArmTask(disk_range=0.3), overwrite=True, progress=False)

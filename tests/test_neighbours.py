@@ -116,7 +116,7 @@ def test_query_inside_scan_of_a_rollout(wrap_data):
 def test_level_beyond_max_level_is_reported_not_dropped(wrap_data):
     s, g, _, _ = wrap_data
     index = build_index(s, g, k=20, max_level=0)
-    far = jnp.array([[2.0, 2.0], [0.0, 0.0]], jnp.float32)
+    far = jnp.array([[0.6, 0.6], [0.0, 0.0]], jnp.float32)  # ~0.4 from the data: level ~8
     nb = query_neighbours(index, jax.random.key(0), far, jnp.array([np.pi, np.pi], jnp.float32))
     assert int(nb.level[0]) == -1 and (np.asarray(nb.idx[0]) == -1).all()
     assert not bool(nb.found[0])
