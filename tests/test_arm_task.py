@@ -50,11 +50,15 @@ def test_arm_long_data_put_the_disk_anywhere_in_the_state():
 
 
 def test_arm_long_horizon_task():
-    # A policy that never moves: only rollouts that start at their target succeed (0 steps).
+    # One compiled task, two policies: "still" (joint moves of zero) and "swing" (joint 1
+    # only: the whole arm swings), chosen by a traced flag.
     env = ArmEnv(ARM)
-    cfg = EvalConfig(long_rollouts=24, long_max_steps=3, success_radius=0.25, long_finger_box=0.5)
-    still = lambda key, s, g: (jnp.zeros((s.shape[0], 3)), jnp.ones(s.shape[0], bool))
-    ro, target, q = arm_protocol_b(env, still, jax.random.PRNGKey(1), cfg, LONG)
+    cfg = EvalConfig(long_rollouts=24, long_max_steps=12, success_radius=0.25, long_finger_box=0.5)
+    run = jax.jit(lambda key, swing: arm_protocol_b(
+        env, lambda k, s, g: (jnp.tile(jnp.array([1.0, 0.0, 0.0]) * swing, (s.shape[0], 1)),
+                              jnp.ones(s.shape[0], bool)), key, cfg, LONG))
+    # Still: only rollouts that start at their target succeed (0 steps), none moves.
+    ro, target, q = run(jax.random.PRNGKey(1), 0.0)
     disk0, target = np.asarray(ro.disk[0]), np.asarray(target)
     assert np.abs(disk0).max() <= LONG.long_range and np.abs(target).max() <= LONG.long_range
     tip0 = np.asarray(ro.finger[0])
@@ -65,13 +69,12 @@ def test_arm_long_horizon_task():
     assert 0 < at_target.sum() < at_target.size  # the radius makes both kinds likely
     outcome, steps = np.asarray(ro.outcome), np.asarray(ro.steps)
     np.testing.assert_array_equal(outcome, np.where(at_target, CORRECT, NOT_PUSHED))
-    np.testing.assert_array_equal(steps, np.where(at_target, 0, 3))
-    # A policy that swings the whole arm: outcomes as the disk's final positions say.
-    swing = lambda key, s, g: (jnp.tile(jnp.array([1.0, 0.0, 0.0]), (s.shape[0], 1)),
-                               jnp.ones(s.shape[0], bool))
-    ro, target, _ = arm_protocol_b(env, swing, jax.random.PRNGKey(1), dataclasses.replace(
-        cfg, long_max_steps=12), LONG)
+    np.testing.assert_array_equal(steps, np.where(at_target, 0, cfg.long_max_steps))
+    np.testing.assert_array_equal(np.asarray(ro.disk), np.broadcast_to(disk0, ro.disk.shape))
+    # Swing: the outcomes are what the disk's final positions say.
+    ro, target, _ = run(jax.random.PRNGKey(1), 1.0)
     final, outcome = np.asarray(ro.disk[-1]), np.asarray(ro.outcome)
+    assert (np.linalg.norm(final - disk0, axis=1) > 0.01).any()  # some pushes happened
     reached = np.linalg.norm(np.asarray(target) - final, axis=1) < cfg.success_radius
     off = np.abs(final).max(1) > ARM.push.table_half_size
     assert ((outcome == CORRECT) == reached).all() and ((outcome == WRONG) == (off & ~reached)).all()
