@@ -231,14 +231,14 @@ def fit_arm(config: Config, run_dir: str | Path, *, task: ArmTask = ArmTask(), r
 
     An existing run is refused unless ``resume`` (continue from its newest intact
     checkpoint: same task, radius, seed, data and neighbour settings, compatible
-    training settings; ``train.cycles`` may grow) or ``overwrite`` (start afresh).
+    training settings; ``train.cycles`` may grow) or ``overwrite`` (start afresh; it wins
+    over ``resume``, as for :func:`lazyq_jax.pipeline.fit`).
     The neighbourhoods are recomputed from the saved dataset and the run's key.
     """
     run_dir = Path(run_dir)
     if not isinstance(task, ArmTask):
         raise TypeError(f"fit_arm needs an ArmTask, got {type(task).__name__}")
-    if resume and overwrite:
-        raise ConfigError("choose one of resume and overwrite")
+    resume = resume and not overwrite  # overwrite wins: `make train` always passes --resume
     meta = {"task": "arm", "arm_task": dataclasses.asdict(task), "arm_radius_s": radius_s,
             **to_dict(config)}
     ckpt_dir, meta_path = run_dir / "checkpoints", run_dir / "config.json"
