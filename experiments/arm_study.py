@@ -27,8 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lazyq_jax.arm_task import ARM_TASKS, ArmTask, arm_protocol_a, arm_protocol_b
-from lazyq_jax.arm_task import fit_arm
+from lazyq_jax.arm_task import ARM_TASKS, ArmTask, arm_protocol_a, arm_protocol_b, fit_arm
 from lazyq_jax.config import Config, override, preset
 from lazyq_jax.env.arm import ArmConfig, ArmEnv
 from lazyq_jax.evaluate import CORRECT, direction_rates, eval_keys, summarize_a

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import shutil
 import time
 from pathlib import Path
@@ -36,7 +35,7 @@ from jax.sharding import Mesh
 
 from lazyq_jax import plots
 from lazyq_jax.checkpoint import load_latest_intact, save_checkpoint
-from lazyq_jax.config import CollectConfig, Config, ConfigError, EvalConfig, to_dict
+from lazyq_jax.config import CollectConfig, Config, ConfigError, EvalConfig, _check, _positive, to_dict
 from lazyq_jax.data import (DatasetError, dataset_summary, episodes_to_transitions, load_dataset,
                             repeated_moves, run_episodes, save_dataset)
 from lazyq_jax.env.arm import ArmConfig, ArmEnv, ArmState, fingertip_xy, sample_arm_start
@@ -76,17 +75,12 @@ class ArmTask:
     long_range: float = 0.3
 
     def __post_init__(self) -> None:
-        def positive(v):
-            return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
-
-        if not (self.disk_range is None or positive(self.disk_range)):
-            raise ConfigError(f"ArmTask.disk_range must be None or a number > 0, got {self.disk_range!r}")
-        if not positive(self.disk_scale) or not positive(self.long_range):
-            raise ConfigError(f"ArmTask.disk_scale and long_range must be numbers > 0, got "
-                              f"{self.disk_scale!r} and {self.long_range!r}")
-        if self.disk_range is not None and self.long_range > self.disk_range:
-            raise ConfigError(f"ArmTask.long_range={self.long_range} exceeds disk_range="
-                              f"{self.disk_range}: the data would never have seen the disk there")
+        _positive(self, "disk_scale", "long_range")
+        if self.disk_range is not None:
+            _positive(self, "disk_range")
+            _check(self.long_range <= self.disk_range,
+                   f"ArmTask.long_range={self.long_range} exceeds disk_range={self.disk_range}: "
+                   "the data would never have seen the disk there")
 
     @property
     def disk_in_state(self) -> bool:
@@ -321,13 +315,12 @@ def fit_arm(config: Config, run_dir: str | Path, *, task: ArmTask = ArmTask(), r
 def _arm_dataset(config: Config, arm: ArmConfig, task: ArmTask, run_dir: Path, key: jax.Array,
                  progress: bool, reuse: bool) -> Transitions:
     """``run_dir/dataset.npz`` if ``reuse`` (the run directory's stored task matches) and
-    the file holds this run's data (collect settings, seed, state size), else collected
-    and saved there."""
+    the file holds this run's data (collect settings, seed), else collected and saved there."""
     path = run_dir / "dataset.npz"
     if reuse and path.exists():
         try:
             data, stored, seed = load_dataset(path)
-            if stored == config.collect and seed == config.seed and data.s.shape[1] == task.state_dim:
+            if stored == config.collect and seed == config.seed:
                 _log(f"arm dataset: reusing {path} ({data.size:,} rows)")
                 return data
         except DatasetError as e:
