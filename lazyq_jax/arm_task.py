@@ -207,6 +207,26 @@ def arm_protocol_b(env: ArmEnv, act: Act, key: jax.Array, cfg: EvalConfig, task:
 
 ARM_RADIUS_S = 0.12  # joint-space neighbourhood radius (rad): one joint move
 
+# Config fields that only the finger's push task reads, with what the arm uses instead.
+ARM_UNUSED_FIELDS = {
+    "collect.start_range": "the arm starts from random joint angles (ArmConfig)",
+    "eval.start": "protocol A starts the arm from random joint angles",
+    "eval.start_range": "protocol A starts the arm from random joint angles",
+    "eval.long_range": "the long-horizon range is ArmTask.long_range (0.3 for arm-long)",
+    "online": "the arm learns offline only",
+    "parallel": "the arm runs in one process on one device",
+}
+
+
+def check_arm_overrides(assignments: list[str]) -> None:
+    """Refuse ``--set`` overrides that the arm task would silently ignore."""
+    for assignment in assignments:
+        dotted = assignment.split("=", 1)[0].strip()
+        for field, instead in ARM_UNUSED_FIELDS.items():
+            if dotted == field or dotted.startswith(field + "."):
+                raise ConfigError(f"--set {dotted} has no effect on the arm task: {instead}; "
+                                  "drop it (or train --task push)")
+
 
 def fit_arm(config: Config, run_dir: str | Path, *, task: ArmTask = ArmTask(), resume: bool = False,
             overwrite: bool = False, progress: bool = True, radius_s: float = ARM_RADIUS_S,

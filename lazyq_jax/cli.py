@@ -50,16 +50,18 @@ def cmd_collect(args) -> None:
 
 
 def cmd_train(args) -> None:
-    config = _config(args)
     if args.task != "push":
-        from lazyq_jax.arm_task import ARM_TASKS, fit_arm
+        from lazyq_jax.arm_task import ARM_TASKS, check_arm_overrides, fit_arm
 
+        check_arm_overrides(args.set or [])
+        config = _config(args)
         run_dir = args.run_dir or Path("runs") / f"{args.task}_{args.preset}"
         t = time.perf_counter()
         fit_arm(config, run_dir, task=ARM_TASKS[args.task], resume=args.resume,
                 overwrite=args.overwrite, progress=not args.no_progress, evaluate=not args.no_eval)
         print(f"arm: done in {time.perf_counter() - t:.1f} s; run directory: {run_dir}")
         return
+    config = _config(args)
     run_dir = args.run_dir or Path("runs") / args.preset
     t = time.perf_counter()
     if config.online.rounds:  # online lazy Q: the agent gathers its own pushes

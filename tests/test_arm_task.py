@@ -9,8 +9,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from lazyq_jax.arm_task import ARM_TASKS, ArmTask, arm_protocol_b, collect_arm, fit_arm
+from lazyq_jax.arm_task import (ARM_TASKS, ArmTask, arm_protocol_b, check_arm_overrides, collect_arm,
+                                fit_arm)
 from lazyq_jax.checkpoint import load_checkpoint
+from lazyq_jax.cli import main as cli_main
 from lazyq_jax.config import CollectConfig, ConfigError, EvalConfig, NeighbourConfig, TrainConfig, preset
 from lazyq_jax.data import load_dataset
 from lazyq_jax.env.arm import ArmConfig, ArmEnv, fingertip_xy
@@ -31,6 +33,20 @@ def test_arm_task_validation():
             ArmTask(**bad)
     with pytest.raises(ConfigError, match="disk in the state"):
         arm_protocol_b(ArmEnv(ARM), None, jax.random.PRNGKey(0), EvalConfig(), ArmTask())
+
+
+def test_overrides_the_arm_ignores_are_refused(capsys, monkeypatch):
+    check_arm_overrides(["train.width=64", "eval.n_directions=4", "collect.n_goals=8"])
+    for assignment, hint in (("eval.long_range=0.2", "ArmTask.long_range"),
+                             ("collect.start_range=0.5", "random joint angles"),
+                             ("online.rounds=2", "offline only"), ("parallel.devices=2", "one device")):
+        with pytest.raises(ConfigError, match=hint):
+            check_arm_overrides([assignment])
+    # the CLI refuses them before it builds anything
+    monkeypatch.setenv("LAZYQ_COMPILE_CACHE", "off")  # main() would turn the disk cache on
+    with pytest.raises(SystemExit) as exit_:
+        cli_main(["train", "--task", "arm", "--set", "eval.long_range=0.2"])
+    assert exit_.value.code == 2 and "no effect on the arm task" in capsys.readouterr().err
 
 
 def test_arm_long_data_put_the_disk_anywhere_in_the_state():
