@@ -39,8 +39,12 @@ study: $(STAMP)
 eval: $(STAMP)
 	$(PY) -m lazyq_jax evaluate --run-dir $(RUN) $(ARGS)
 
+# The suite runs its files on up to 4 worker processes (one per core; pytest-xdist):
+# each file stays on one worker, so its compiled fixtures are built once.
+# TEST_WORKERS=0 runs it in this process.
+TEST_WORKERS ?= auto
 test: $(STAMP)
-	$(PY) -m pytest -q $(ARGS)
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --maxprocesses 4 --dist loadfile $(ARGS)
 
 bench: $(STAMP)
 	$(PY) experiments/bench_collect.py
