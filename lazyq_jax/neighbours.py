@@ -324,6 +324,24 @@ def _member_words(index: GridIndex, qx, qy, qg, item_q, item_start, item_valid, 
     return jnp.stack(words, axis=1)
 
 
+def _pick_level(words, item_q, n_queries: int, k: int, lo: int):
+    """Each query's level: the smallest of ``lo, lo + 1, ...`` whose ball holds ``k``
+    members, from the items' membership words ``[T, levels]`` (items sorted by query).
+
+    Returns ``(found, li, level, m)``: ``found`` if any level has ``k``; ``li`` its
+    column of ``words``; ``level`` (``-1`` where none) and ``m = |B_level|`` (where none,
+    the members at the last level).
+    """
+    counts = jax.ops.segment_sum(jax.lax.population_count(words).astype(jnp.int32), item_q,
+                                 num_segments=n_queries, indices_are_sorted=True)  # [Q, levels]
+    enough = counts >= k
+    found = enough.any(axis=1)
+    li = jnp.argmax(enough, axis=1)
+    level = jnp.where(found, lo + li, -1)
+    m = jnp.where(found, jnp.take_along_axis(counts, li[:, None], 1)[:, 0], counts[:, -1])
+    return found, li, level, m
+
+
 def _mix32(x):
     """lowbias32 integer hash (uint32 -> uint32)."""
     x = x ^ (x >> 16)
@@ -376,13 +394,7 @@ def _search(index: GridIndex, seed, qx, qy, qg, *, lo: int, hi: int, n_items: in
     item_q, item_start, item_valid, first, n_q = _items(start, length, n_items)
     words = _member_words(index, qx, qy, qg, item_q, item_start, item_valid, range(lo, hi + 1))
     q = qx.shape[0]
-    counts = jax.ops.segment_sum(jax.lax.population_count(words).astype(jnp.int32), item_q,
-                                 num_segments=q, indices_are_sorted=True)  # [Q, levels]
-    enough = counts >= k
-    found = enough.any(axis=1)
-    li = jnp.argmax(enough, axis=1)
-    level = jnp.where(found, lo + li, -1)
-    m = jnp.where(found, jnp.take_along_axis(counts, li[:, None], 1)[:, 0], counts[:, -1])
+    found, li, level, m = _pick_level(words, item_q, q, k, lo)
     # Words of each item at its query's level, their popcounts and global exclusive prefix.
     word = jnp.take_along_axis(words, li[item_q][:, None], 1)[:, 0]
     pc = jax.lax.population_count(word).astype(jnp.int32)

@@ -116,8 +116,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from lazyq_jax.neighbours import (TWO_PI, Neighbours, _check_params, _mix32, _select_bit, radius_tables,
-                                  wrap_angle)
+from lazyq_jax.neighbours import (TWO_PI, Neighbours, _check_params, _mix32, _pick_level, _select_bit,
+                                  radius_tables, wrap_angle)
 
 __all__ = ["GridAxis", "NDIndex", "build_index_nd", "find_neighbours_nd", "membership_level_reference",
            "search_all_nd"]
@@ -741,13 +741,7 @@ def _search_chunk(index: NDIndex, seed, real, qcols, ip, fr, *, lo, hi, cap, ste
     max_items = jnp.max(jnp.sum(nit.astype(jnp.float32), axis=1))
     item_q, item_start, item_valid, first, n_q = _items(start, length, cap)
     words = _member_words(index, qcols, item_q, item_start, item_valid, lo, hi)
-    counts = jax.ops.segment_sum(jax.lax.population_count(words).astype(jnp.int32), item_q,
-                                 num_segments=c, indices_are_sorted=True)  # [C, levels]
-    enough = counts >= k
-    found = enough.any(axis=1)
-    li = jnp.argmax(enough, axis=1)
-    level = jnp.where(found, lo + li, -1)
-    m = jnp.where(found, jnp.take_along_axis(counts, li[:, None], 1)[:, 0], counts[:, -1])
+    found, li, level, m = _pick_level(words, item_q, c, k, lo)
     word = jnp.take_along_axis(words, li[item_q][:, None], 1)[:, 0]
     pc = jax.lax.population_count(word).astype(jnp.int32)
     prefix = _cumsum(pc) - pc
