@@ -430,18 +430,37 @@ def dataset_table(sd: StudyData) -> dict:
             "diagonal_to_axis_ratio_worst_per_seed": worst.round(3).tolist()}
 
 
-def write_results(run_dir: Path, config: Config, sd: StudyData, methods: dict[str, dict]) -> dict:
+def earlier_methods(run_dir: Path, seeds: Sequence[int], methods: Sequence[str]) -> dict:
+    """The rows of ``run_dir/results.json`` for methods an earlier invocation of this
+    study ran and this one does not (same seeds and study version; the config was
+    checked by the caller), so that resuming with a subset of the methods adds to the
+    table instead of dropping rows."""
+    path = run_dir / "results.json"
+    if not path.exists():
+        return {}
+    old = json.loads(path.read_text())
+    if old.get("version") != STUDY_VERSION or old.get("seeds") != list(seeds):
+        return {}
+    return {name: m for name, m in old.get("methods", {}).items() if name not in methods}
+
+
+def write_results(run_dir: Path, config: Config, sd: StudyData, methods: dict[str, dict],
+                  earlier: dict | None = None) -> dict:
+    """Write ``results.json``, ``summary.md`` and the figures for the ``methods`` run
+    now (``{spec: {"per_seed_eval", "timings"}}``) after the ``earlier`` rows (as
+    returned by :func:`earlier_methods`)."""
     results = {"version": STUDY_VERSION, "seeds": list(sd.seeds),
                "ci": "95 % Student-t interval over seeds (clipped to [0, 1])",
                "datasets": dataset_table(sd),
-               "methods": {name: {**method_summary(m["per_seed_eval"]), "timings": m["timings"]}
-                           for name, m in methods.items()}}
+               "methods": {**(earlier or {}),
+                           **{name: {**method_summary(m["per_seed_eval"]), "timings": m["timings"]}
+                              for name, m in methods.items()}}}
     (run_dir / "results.json").write_text(json.dumps(results, indent=1))
     (run_dir / "summary.md").write_text(summary_markdown(results))
     from lazyq_jax import plots
 
     plots.study_per_direction(results, run_dir / "figures" / "per_direction.png")
-    if len(methods) > 1:
+    if len(results["methods"]) > 1:
         plots.study_methods(results, run_dir / "figures" / "methods.png")
     return results
 
@@ -545,7 +564,8 @@ def run_study(config: Config, run_dir: str | Path, *, seeds: Sequence[int],
     """Run (or resume) a study: every method on every seed's data; write the results.
 
     ``resume``: continue a study in ``run_dir`` with the same config and seeds
-    (refused otherwise); ``overwrite``: delete it first.  Returns the contents of
+    (refused otherwise); the methods of earlier runs of it that are not named again
+    keep their rows in ``results.json``.  ``overwrite``: delete it first.  Returns the contents of
     ``results.json``.
     """
     seeds, methods = check_seeds(seeds), check_methods(methods)
@@ -562,8 +582,12 @@ def run_study(config: Config, run_dir: str | Path, *, seeds: Sequence[int],
     (run_dir / "timings.json").write_text(json.dumps({"datasets_s": round(time.perf_counter() - t, 1)}))
     _log(f"study: datasets ready ({time.perf_counter() - t:.1f} s; rows "
          f"{min(d.size for d in sd.datasets):,}-{sd.capacity:,})")
+    earlier = earlier_methods(run_dir, seeds, methods) if resume else {}
     records = {spec: run_method(spec, config, run_dir, sd, progress) for spec in methods}
-    results = write_results(run_dir, config, sd, records)
+    if earlier:
+        _log(f"study: results.json keeps {', '.join(earlier)} from an earlier run of this "
+             "study (--overwrite starts afresh)")
+    results = write_results(run_dir, config, sd, records, earlier)
     _log(summary_markdown(results))
     _log(f"study: done in {time.perf_counter() - t:.1f} s -> {run_dir / 'results.json'}")
     return results

@@ -164,6 +164,11 @@ def test_resume_reuses_everything_and_mismatches_are_refused(study_dir):
     log = again.stdout + again.stderr
     assert "lazy: cycle" not in log and "bc: reusing its trained state" in log  # nothing retrained
     assert json.loads((study_dir / "results.json").read_text()) == json.loads(before)
+    subset = cli("study", "--preset", "smoke", "--seeds", "2", "--first-seed", "3", "--methods",
+                 "bc", "--run-dir", str(study_dir), "--resume", "--no-progress")
+    assert subset.returncode == 0, subset.stderr[-3000:]
+    assert "results.json keeps lazy" in subset.stdout + subset.stderr  # not dropped
+    assert json.loads((study_dir / "results.json").read_text()) == json.loads(before)
     refused = cli("study", "--preset", "smoke", "--seeds", "2", "--first-seed", "3", "--run-dir",
                   str(study_dir), "--no-progress")
     assert refused.returncode == 2 and "--resume" in refused.stderr
