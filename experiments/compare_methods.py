@@ -7,7 +7,7 @@ and the random and scripted controllers.  Lazy Q's datasets and trained states a
 taken from the main study (``make study``: runs/study_paper, restricted to these
 seeds) instead of being trained again; the other methods train on those datasets.
 
-    .venv/bin/python experiments/compare_methods.py [--seeds 5] [--budget 1]
+    .venv/bin/python experiments/compare_methods.py [--seeds 5] [--first-seed 0] [--budget 1]
         [--main runs/study_paper] [--best runs/baseline_sweep/best.json]
         [--out runs/study_methods] [--methods iql td3bc dqn naf bc random scripted]
 
@@ -32,6 +32,8 @@ from ablations import copy_datasets, seed_slice_checkpoints
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, default=5)
+    ap.add_argument("--first-seed", type=int, default=0,
+                    help="the seeds are first-seed .. first-seed + seeds - 1")
     ap.add_argument("--budget", type=float, default=1.0)
     ap.add_argument("--main", type=Path, default=Path("runs/study_paper"),
                     help="the study whose datasets and lazy Q are reused; 'none': afresh")
@@ -43,7 +45,7 @@ def main():
     ap.add_argument("--set", action="append", default=[], help="lazy Q config override")
     ap.add_argument("--progress", action="store_true", help="progress bars on stderr")
     args = ap.parse_args()
-    seeds = list(range(args.seeds))
+    seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     config = override(preset("paper"), args.set)
     best = json.loads(args.best.read_text()) if args.best.exists() else {}
     specs = [] if args.no_lazy else ["lazy"]
