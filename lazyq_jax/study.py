@@ -565,8 +565,8 @@ def run_study(config: Config, run_dir: str | Path, *, seeds: Sequence[int],
 
     ``resume``: continue a study in ``run_dir`` with the same config and seeds
     (refused otherwise); the methods of earlier runs of it that are not named again
-    keep their rows in ``results.json``.  ``overwrite``: delete it first.  Returns the contents of
-    ``results.json``.
+    keep their rows in ``results.json``.  ``overwrite``: delete it first.  Returns the
+    contents of ``results.json``.
     """
     seeds, methods = check_seeds(seeds), check_methods(methods)
     learned = [m for m in methods if parse_method(m)[0] not in ("lazy", "random", "scripted")]
