@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lazyq_jax.neighbours_query import build_scan_index, query_neighbours_scan
+from lazyq_jax.neighbours.query import build_scan_index, query_neighbours_scan
 
 
 def main() -> None:

@@ -10,7 +10,7 @@ import numpy as np
 
 from lazyq_jax.local_model import fit_local_linear, greedy_action
 from lazyq_jax.neighbours import GridIndex, build_index, query_neighbours
-from lazyq_jax.neighbours_query import ScanIndex, build_scan_index, query_neighbours_scan
+from lazyq_jax.neighbours.query import ScanIndex, build_scan_index, query_neighbours_scan
 from lazyq_jax.targets import bootstrap_table
 from lazyq_jax.types import Transitions
 
@@ -35,7 +35,7 @@ def make_lazy_policy(value_fn: Callable, data: Transitions, *, gamma: float, act
     grid's bounds (see :func:`lazyq_jax.build_index`; default: the data's).  States
     ``[N, 2]`` with angle goals ``[N]`` get the grid index; any other space
     (``[N, d_s]``, goals ``[N, d_g]`` or ``None``) a scan of the data per query
-    (:mod:`lazyq_jax.neighbours_query`).
+    (:mod:`lazyq_jax.neighbours.query`).
     """
     if np.ndim(data.s) == 2 and np.shape(data.s)[1] == 2 and data.g is not None and np.ndim(data.g) == 1:
         index = build_index(data.s, data.g, k=k, radius_s=radius_s, radius_g=radius_g, growth=growth,

@@ -6,8 +6,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from lazyq_jax.neighbours.common import TWO_PI
 from lazyq_jax.neighbours import (
-    TWO_PI,
     Neighbours,
     build_index,
     check_found,

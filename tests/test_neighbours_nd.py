@@ -10,8 +10,8 @@ import jax
 import numpy as np
 import pytest
 
-from lazyq_jax.neighbours import TWO_PI, radius_tables, wrap_angle
-from lazyq_jax.neighbours_nd import (
+from lazyq_jax.neighbours.common import TWO_PI, radius_tables, wrap_angle
+from lazyq_jax.neighbours.nd import (
     build_index_nd,
     find_neighbours_nd,
     membership_level_reference,

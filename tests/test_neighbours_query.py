@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import lazyq_jax as lq
-from lazyq_jax.neighbours_nd import find_neighbours_nd, membership_level_reference
-from lazyq_jax.neighbours_query import build_scan_index, query_neighbours_scan
+from lazyq_jax.neighbours.nd import find_neighbours_nd, membership_level_reference
+from lazyq_jax.neighbours.query import build_scan_index, query_neighbours_scan
 
 RS, RG, GROWTH, MAX_LEVEL = 0.1, 0.4, 2 ** (1 / 3), 8
 

@@ -1,6 +1,6 @@
 """Exact neighbourhoods ``B(s0, g0)`` (paper §V-A-2) for general state and goal spaces.
 
-Generalises :mod:`lazyq_jax.neighbours` (states ``[N, 2]``, angle goals) to states
+Generalises :mod:`lazyq_jax.neighbours.grid` (states ``[N, 2]``, angle goals) to states
 ``s[N, d_s]`` with ``1 <= d_s <= 10`` and goals that are an angle ``g[N]``, a vector
 ``g[N, d_g]`` (``1 <= d_g <= 10``) or absent (``None``).
 
@@ -8,7 +8,7 @@ Semantics (the reference the tests check against)
 -------------------------------------------------
 With ``R2S[L] = float32((radius_s * growth**L)**2)``, ``RG[L] = float32(radius_g * growth**L)``
 and ``RG2[L] = float32((radius_g * growth**L)**2)`` (each rounded once from float64, see
-:func:`lazyq_jax.neighbours.radius_tables`), a data point ``(s, g)`` belongs to
+:func:`lazyq_jax.neighbours.common.radius_tables`), a data point ``(s, g)`` belongs to
 ``B_L(s0, g0)`` iff, computed in float32 exactly as written (every product and every
 sum rounded to float32, sums left to right)::
 
@@ -19,7 +19,7 @@ sum rounded to float32, sums left to right)::
     vector: dg2 = (g[0]-g0[0])**2 + ... + (g[d_g-1]-g0[d_g-1])**2;  dg2 < RG2[L]
     none:   goal_ok = True
 
-``wrap`` and the float32 ``PI``/``TWO_PI`` are those of :mod:`lazyq_jax.neighbours`
+``wrap`` and the float32 ``PI``/``TWO_PI`` are those of :mod:`lazyq_jax.neighbours.grid`
 (``wrap`` is evaluated on the host in NumPy). ``level`` is the smallest ``L >= 0`` with
 ``|B_L| >= k``; ``idx`` holds ``k`` distinct indices drawn uniformly without
 replacement from ``B_level``; ``count = |B_level|``.
@@ -43,7 +43,7 @@ of cell offsets gives each cell's contiguous range in O(1). The other axes are n
 partitioned. A query's level-``L`` stencil is one contiguous range per cell of the
 non-last grid axes, the last axis's interval clipped to the chord of the query's ball
 (and cells outside the ball in a block dropped): ``R = prod(spans)`` ranges. The first
-axis may be *replicated* (as the g-blocks of :mod:`lazyq_jax.neighbours`): every point
+axis may be *replicated* (as the g-blocks of :mod:`lazyq_jax.neighbours.grid`): every point
 is stored ``rep`` times, in the blocks of ``rep`` consecutive cells that contain it, so
 one block holds the whole level-0 interval of that axis and ``R`` shrinks by its span
 while ranges get longer (fewer partly filled items).
@@ -67,7 +67,7 @@ arithmetic under ``jit`` works on small numbers; the stencil is widened by a rel
 by ~1e-6) plus ``1e-4`` cells, far above the float32 error of the test. The grid only
 has to cover ``B_L``; membership is always the float32 formula.
 
-*Membership words* (the scheme of :mod:`lazyq_jax.neighbours`). Each range is cut into
+*Membership words* (the scheme of :mod:`lazyq_jax.neighbours.grid`). Each range is cut into
 items of ``W = 32`` consecutive entries (one contiguous ``[n_cols, 32]`` slice gather
 an item, ~3x faster on CPU than gathering lanes); one float32 test per entry and level
 gives a 32-bit word per item and level (several levels in one variadic reduction, so
@@ -78,7 +78,7 @@ with a word per level the exact test is the only level computation. Sampling dra
 popcounts (a window compare when a query has at most 32 items, else a binary search)
 and a select-in-word.
 
-*Host-driven growth* (as :func:`lazyq_jax.neighbours.search_all`): pass 1 tests level
+*Host-driven growth* (as :func:`lazyq_jax.neighbours.grid.search_all`): pass 1 tests level
 0 for all queries (sorted by cell key for locality); queries still short of ``k`` are
 searched again with levels ``1..3``, ``4..7``, ``8..15``, ... (at most 16 levels a pass,
 the stencil of the highest) until the radii cover all data (``|B| = N >= k``).
@@ -116,8 +116,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from lazyq_jax.neighbours import (TWO_PI, Neighbours, _check_params, _mix32, _pick_level, _select_bit,
-                                  radius_tables, wrap_angle)
+from lazyq_jax.neighbours.common import (TWO_PI, Neighbours, _check_params, _mix32, _pick_level,
+                                         _select_bit, radius_tables, wrap_angle)
 
 __all__ = ["GridAxis", "NDIndex", "build_index_nd", "find_neighbours_nd", "membership_level_reference",
            "search_all_nd"]

@@ -1,4 +1,5 @@
-"""Neighbourhoods ``B(s0, g0)`` of paper §V-A-2 on a grid hash, under ``jit``.
+"""The grid of the paper's case (2-D states, an angle goal): neighbourhoods ``B(s0, g0)``
+of paper §V-A-2 on a grid hash, under ``jit``.
 
 Semantics (the reference the tests check against)
 -------------------------------------------------
@@ -36,8 +37,9 @@ each rank to its member through the prefix of popcounts and a select-in-word.
 
 Two entry points:
 
-* :func:`find_neighbours` (host-driven, exact for any number of queries and any
-  level): builds the index, searches, grows until every query has ``k`` members.
+* :func:`build_index` then :func:`search_all` (host-driven, exact for any number of
+  queries and any level; what :func:`lazyq_jax.neighbours.find_neighbours` runs for
+  this space): searches, grows until every query has ``k`` members.
   Sizes that depend on the data (number of items, queries still growing) are
   read back between passes, so it is not itself jittable.
 * :func:`build_index` once, then :func:`query_neighbours` (pure, jittable, e.g.
@@ -58,37 +60,14 @@ import numpy as np
 from flax import struct
 from jax.sharding import Mesh, PartitionSpec as P
 
+from lazyq_jax.neighbours.common import (PI, TWO_PI, Neighbours, _check_params, _mix32, _pick_level,
+                                         _select_bit, radius_tables, wrap_angle)
 from lazyq_jax.parallel import AXIS, to_host
 
-PI = np.float32(np.pi)
-TWO_PI = np.float32(2 * np.pi)
 W = 32  # entries per item (bits per membership word)
 D = 5  # g-cells per g-block (each point is stored D times)
 _FX, _FY, _FG = 0.25, 0.5, 0.5  # cell size / base radius in x, y, g
 _CELL_SLACK = 1.001  # cells slightly above the target so the level-0 stencil stays 5 x 1
-
-
-@struct.dataclass
-class Neighbours:
-    """Result of a neighbour search for ``Q`` queries.
-
-    * ``idx``: int32 ``[Q, k]``: distinct indices into the data, uniform without
-      replacement from ``B_level`` (a uniform k-subset; the column order is not a
-      uniform random order, so take all k columns, not a prefix).
-    * ``level``: int32 ``[Q]``: growths applied (radii ``radius * growth**level``).
-    * ``count``: int32 ``[Q]``: ``|B_level|``.
-
-    ``level == -1`` (and ``idx == -1``) only from :func:`query_neighbours` for a
-    query that needs more than ``index.max_level`` growths.
-    """
-
-    idx: jax.Array
-    level: jax.Array
-    count: jax.Array
-
-    @property
-    def found(self) -> jax.Array:
-        return self.level >= 0
 
 
 @struct.dataclass
@@ -120,19 +99,6 @@ class GridIndex:
 # ----------------------------------------------------------------------------- validation
 
 
-def _check_params(k, radius_s, radius_g, growth):
-    if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k <= 0:
-        raise ValueError(f"k must be a positive int, got {k!r}")
-    for name, v in (("radius_s", radius_s), ("radius_g", radius_g), ("growth", growth)):
-        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-            raise ValueError(f"{name} must be a real number, got {v!r}")  # noqa: TRY004 (one error type)
-    for name, v in (("radius_s", radius_s), ("radius_g", radius_g)):
-        if not np.isfinite(v) or v <= 0:
-            raise ValueError(f"{name} must be a finite positive number, got {v!r}")
-    if not np.isfinite(growth) or growth <= 1:
-        raise ValueError(f"growth must be a finite number > 1 (radii grow each level), got {growth!r}")
-
-
 def _check_points(s, g, what):
     s = np.asarray(s)
     g = np.asarray(g)
@@ -145,21 +111,6 @@ def _check_points(s, g, what):
     if not (np.isfinite(s).all() and np.isfinite(g).all()):
         raise ValueError(f"{what}_s / {what}_g contain NaN or inf; remove or fix those points")
     return s, g
-
-
-def wrap_angle(g):
-    """``g - 2pi*floor((g + pi)/2pi)`` in float32 (NumPy or JAX arrays): the goal in ``[-pi, pi]``."""
-    xp = jnp if isinstance(g, jax.Array) else np
-    g = xp.asarray(g, dtype=xp.float32)
-    return g - TWO_PI * xp.floor((g + PI) / TWO_PI)
-
-
-def radius_tables(radius_s, radius_g, growth, levels):
-    """float32 ``(R2S, RG)`` for the given levels: the thresholds of the membership test."""
-    lv = np.asarray(levels, np.float64)
-    r2s = ((radius_s * growth**lv) ** 2).astype(np.float32)
-    rg = (radius_g * growth**lv).astype(np.float32)
-    return r2s, rg
 
 
 # ----------------------------------------------------------------------------- index
@@ -324,33 +275,6 @@ def _member_words(index: GridIndex, qx, qy, qg, item_q, item_start, item_valid, 
     return jnp.stack(words, axis=1)
 
 
-def _pick_level(words, item_q, n_queries: int, k: int, lo: int):
-    """Each query's level: the smallest of ``lo, lo + 1, ...`` whose ball holds ``k``
-    members, from the items' membership words ``[T, levels]`` (items sorted by query).
-
-    Returns ``(found, li, level, m)``: ``found`` if any level has ``k``; ``li`` its
-    column of ``words``; ``level`` (``-1`` where none) and ``m = |B_level|`` (where none,
-    the members at the last level).
-    """
-    counts = jax.ops.segment_sum(jax.lax.population_count(words).astype(jnp.int32), item_q,
-                                 num_segments=n_queries, indices_are_sorted=True)  # [Q, levels]
-    enough = counts >= k
-    found = enough.any(axis=1)
-    li = jnp.argmax(enough, axis=1)
-    level = jnp.where(found, lo + li, -1)
-    m = jnp.where(found, jnp.take_along_axis(counts, li[:, None], 1)[:, 0], counts[:, -1])
-    return found, li, level, m
-
-
-def _mix32(x):
-    """lowbias32 integer hash (uint32 -> uint32)."""
-    x = x ^ (x >> 16)
-    x = x * jnp.uint32(0x7FEB352D)
-    x = x ^ (x >> 15)
-    x = x * jnp.uint32(0x846CA68B)
-    return x ^ (x >> 16)
-
-
 def _floyd_ranks(seed, m, k: int):
     """``k`` distinct ranks in ``[0, m)`` per row, uniform over k-subsets (Floyd's algorithm).
 
@@ -368,16 +292,6 @@ def _floyd_ranks(seed, m, k: int):
             taken = taken | (c == t)
         cols.append(jnp.where(taken, j, t))
     return jnp.stack(cols, axis=1)
-
-
-def _select_bit(word, r):
-    """Position of the ``r``-th (0-based) set bit of ``word``."""
-    pos = jnp.zeros_like(r)
-    for step in (16, 8, 4, 2, 1):
-        mid = pos + step
-        below = jax.lax.population_count(word & ((jnp.uint32(1) << mid.astype(jnp.uint32)) - 1))
-        pos = jnp.where(below.astype(jnp.int32) <= r, mid, pos)
-    return pos
 
 
 def _search(index: GridIndex, seed, qx, qy, qg, *, lo: int, hi: int, n_items: int, steps: int):
@@ -555,29 +469,3 @@ def search_all(index: GridIndex, key, query_s, query_g, *, mesh: Mesh | None = N
     idx, level, count = out
     return Neighbours(idx=idx, level=level, count=count)
 
-
-def find_neighbours(key, data_s, data_g, query_s, query_g, *, k=20, radius_s=0.06, radius_g=0.1,
-                    growth=2 ** (1 / 3), mesh: Mesh | None = None) -> Neighbours:
-    """Neighbourhoods of paper §V-A-2 (see the module docstring for the exact semantics).
-
-    The shapes decide the space: states ``[N, d_s]``; goals ``[N]`` (an angle),
-    ``[N, d_g]`` (a vector, Euclidean) or ``None``.  Two-dimensional states with angle
-    goals (the push task) use this module's grid (:func:`build_index`,
-    :func:`search_all`); every other space goes to
-    :func:`lazyq_jax.neighbours_nd.find_neighbours_nd` (same semantics; ``mesh`` is
-    not supported there).  Raises ``ValueError`` before any compilation for bad
-    shapes, NaN/inf coordinates, ``k <= 0`` or ``k > N``, non-positive radii or
-    ``growth <= 1``.
-    """
-    if not (np.ndim(data_s) == 2 and np.shape(data_s)[1] == 2 and data_g is not None
-            and np.ndim(data_g) == 1):
-        from lazyq_jax.neighbours_nd import find_neighbours_nd
-
-        if mesh is not None:
-            raise ValueError("mesh= is supported for 2-D states with angle goals only; drop it for "
-                             f"states {np.shape(data_s)} and goals {None if data_g is None else np.shape(data_g)}")
-        return find_neighbours_nd(key, data_s, data_g, query_s, query_g, k=k, radius_s=radius_s,
-                                  radius_g=radius_g, growth=growth)
-    _check_points(query_s, query_g, "query")
-    index = build_index(data_s, data_g, k=k, radius_s=radius_s, radius_g=radius_g, growth=growth, max_level=0)
-    return search_all(index, key, query_s, query_g, mesh=mesh)

@@ -1,11 +1,11 @@
 """Jittable neighbourhood queries in general spaces, for small batches (a policy step).
 
-:func:`lazyq_jax.neighbours_nd.find_neighbours_nd` answers all of a dataset's queries
+:func:`lazyq_jax.neighbours.nd.find_neighbours_nd` answers all of a dataset's queries
 at once (host-driven passes, grids, growth without limit).  A policy acting in a
 ``lax.scan`` rollout needs the same neighbourhoods ``B(s0, g0)`` (§V-A-2) for a few
 queries at a time, inside ``jit``.  This module answers them by scanning the whole
 dataset: for every data point its *entry level* (the smallest ``L`` with the point in
-``B_L``, by the exact float32 formula of :mod:`lazyq_jax.neighbours_nd`, through
+``B_L``, by the exact float32 formula of :mod:`lazyq_jax.neighbours.nd`, through
 ``searchsorted`` on the radius tables), the query's level as the smallest ``L`` with
 at least ``k`` points at or below it, and ``k`` members drawn uniformly without
 replacement (the ``k`` largest of independent uniform keys among the members).
@@ -14,9 +14,9 @@ Cost ``O(N (d_s + d_g))`` per query, no index and no layout to choose, any ``d_s
 ``d_g`` and goal kind; queries run ``batch`` at a time through ``lax.map`` (memory
 ``O(batch N)``); about 14 ms a query at N = 1M on a 2-core CPU.  The 2-D state +
 angle case keeps its grid
-(:func:`lazyq_jax.neighbours.query_neighbours`), which is far cheaper per query.
+(:func:`lazyq_jax.neighbours.grid.query_neighbours`), which is far cheaper per query.
 A query needing more than ``max_level`` growths gets ``level == -1`` and
-``idx == -1`` (as :func:`lazyq_jax.neighbours.query_neighbours`).
+``idx == -1`` (as :func:`lazyq_jax.neighbours.grid.query_neighbours`).
 """
 
 from __future__ import annotations
@@ -26,8 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from lazyq_jax.neighbours import TWO_PI, Neighbours, radius_tables, wrap_angle
-from lazyq_jax.neighbours_nd import _check_params, _points
+from lazyq_jax.neighbours.common import TWO_PI, Neighbours, _check_params, radius_tables, wrap_angle
+from lazyq_jax.neighbours.nd import _points
 
 __all__ = ["ScanIndex", "build_scan_index", "query_neighbours_scan"]
 

@@ -1,0 +1,59 @@
+"""Neighbourhoods ``B(s0, g0)`` of paper §V-A-2, for any state and goal space.
+
+One semantics (the float32 membership test of :mod:`lazyq_jax.neighbours.grid` and
+:mod:`lazyq_jax.neighbours.nd`: a ball of ``radius_s * growth**L`` in state space and
+``radius_g * growth**L`` in goal space, ``L`` the smallest level holding ``k`` points,
+``k`` members drawn uniformly without replacement), three engines:
+
+* :mod:`~lazyq_jax.neighbours.grid`: 2-D states with angle goals (the paper's case), a
+  grid hash with fixed bounds and capacities so that seeds share compiled passes,
+  the device mesh, and a jittable bounded query for the policy;
+* :mod:`~lazyq_jax.neighbours.nd`: any ``d_s <= 10`` with angle, vector or no goals;
+* :mod:`~lazyq_jax.neighbours.query`: the policy's jittable per-step query in any space.
+
+:func:`find_neighbours` picks the engine from the shapes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from jax.sharding import Mesh
+
+from lazyq_jax.neighbours.common import Neighbours, radius_tables, wrap_angle
+from lazyq_jax.neighbours.grid import GridIndex, build_index, check_found, query_neighbours, search_all
+from lazyq_jax.neighbours.nd import find_neighbours_nd
+from lazyq_jax.neighbours.query import ScanIndex, build_scan_index, query_neighbours_scan
+
+__all__ = ["GridIndex", "Neighbours", "ScanIndex", "build_index", "build_scan_index", "check_found",
+           "find_neighbours", "is_grid_space", "query_neighbours", "query_neighbours_scan",
+           "radius_tables", "search_all", "wrap_angle"]
+
+
+def is_grid_space(data_s, data_g) -> bool:
+    """Whether the 2-D grid serves this space: states ``[N, 2]`` with angle goals ``[N]``."""
+    return (np.ndim(data_s) == 2 and np.shape(data_s)[1] == 2 and data_g is not None
+            and np.ndim(data_g) == 1)
+
+
+def find_neighbours(key, data_s, data_g, query_s, query_g, *, k=20, radius_s=0.06, radius_g=0.1,
+                    growth=2 ** (1 / 3), mesh: Mesh | None = None) -> Neighbours:
+    """Neighbourhoods of paper §V-A-2 (see :mod:`lazyq_jax.neighbours.grid` for the exact
+    semantics).
+
+    The shapes decide the space: states ``[N, d_s]``; goals ``[N]`` (an angle),
+    ``[N, d_g]`` (a vector, Euclidean) or ``None``.  Two-dimensional states with angle
+    goals (the push task) use the grid (:func:`build_index`, :func:`search_all`);
+    every other space goes to :func:`lazyq_jax.neighbours.nd.find_neighbours_nd` (same
+    semantics; ``mesh`` is not supported there).  Raises ``ValueError`` before any
+    compilation for bad shapes, NaN/inf coordinates, ``k <= 0`` or ``k > N``,
+    non-positive radii or ``growth <= 1``.
+    """
+    if not is_grid_space(data_s, data_g):
+        if mesh is not None:
+            raise ValueError("mesh= is supported for 2-D states with angle goals only; drop it for "
+                             f"states {np.shape(data_s)} and goals {None if data_g is None else np.shape(data_g)}")
+        return find_neighbours_nd(key, data_s, data_g, query_s, query_g, k=k, radius_s=radius_s,
+                                  radius_g=radius_g, growth=growth)
+    index = build_index(data_s, data_g, k=k, radius_s=radius_s, radius_g=radius_g, growth=growth,
+                        max_level=0)
+    return search_all(index, key, query_s, query_g, mesh=mesh)
