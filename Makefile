@@ -4,7 +4,8 @@
 # `make train` resumes its run directory: a finished run is only re-evaluated;
 # ARGS="--overwrite" starts it afresh, RUN=runs/other uses another directory.
 # TASK=arm (or arm-long: the disk anywhere, long-horizon task too) trains the arm
-# (joint-space pushing) in runs/$(TASK), resuming it as `make train` does.
+# (joint-space pushing) in runs/$(TASK), resuming it as `make train` does; `make study
+# TASK=arm METHODS=lazy,iql,td3bc` studies any task and methods.
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -20,7 +21,8 @@ TRAIN_FLAGS = --task $(TASK) --run-dir $(if $(filter command line,$(origin RUN))
 endif
 
 SEEDS ?= 8
-STUDY ?= runs/study_paper
+METHODS ?= lazy
+STUDY ?= $(if $(filter push,$(TASK)),runs/study_paper,runs/study_$(TASK))
 
 .PHONY: train test bench eval study clean
 
@@ -34,7 +36,7 @@ train: $(STAMP)
 	$(PY) -m lazyq_jax train $(TRAIN_FLAGS) $(ARGS)
 
 study: $(STAMP)
-	$(PY) -m lazyq_jax study --preset paper --seeds $(SEEDS) --run-dir $(STUDY) --resume $(ARGS)
+	$(PY) -m lazyq_jax study --task $(TASK) --preset paper --seeds $(SEEDS) --methods $(METHODS) --run-dir $(STUDY) --resume $(ARGS)
 
 eval: $(STAMP)
 	$(PY) -m lazyq_jax evaluate --run-dir $(RUN) $(ARGS)

@@ -1,11 +1,12 @@
-"""Per-cycle orbax checkpoints of a :class:`TrainState`, with the run config beside them.
+"""Orbax checkpoints of any training state (a pytree of arrays), with JSON beside them.
 
-Layout: ``<run_dir>/checkpoints/<cycle>/{state, meta, checksums.json}``; ``meta`` is JSON
-holding the checkpoint format version, the full :class:`Config` and, for a study's
-checkpoint of several seeds trained together (every leaf stacked on a leading seed
-axis), the seeds.  Restores go against an abstract target built from that config
-(shapes and dtypes only) and land on this machine's default device, so a checkpoint
-written on a GPU reloads on a CPU laptop.
+Layout: ``<directory>/<step>/{state, meta, checksums.json}``; ``meta`` is JSON holding
+the checkpoint format version, the step and whatever the caller stores (the runner:
+the run config, the method and the seeds whose states are stacked on a leading
+axis).  Restores go against an abstract target (shapes and dtypes only, e.g.
+``jax.eval_shape(agent.init, key, example)``) and land on this machine's default
+device (or a given sharding), so a checkpoint written on a GPU reloads on a CPU
+laptop.
 
 ``checksums.json`` holds the SHA-256 of every file orbax wrote: a truncated or
 damaged checkpoint is recognised before orbax reads it (:class:`CheckpointDamaged`),
@@ -19,17 +20,12 @@ import json
 import os
 import shutil
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Any, Callable
 
 import jax
-import jax.numpy as jnp
-import numpy as np
 import orbax.checkpoint as ocp
 
-from lazyq_jax.config import Config, ConfigError, from_dict, to_dict
-from lazyq_jax.train import TrainState, make_train_for
-
-CHECKPOINT_VERSION = 2  # 2: hidden Dense layers without bias
+CHECKPOINT_VERSION = 3  # 3: any agent's state, with the caller's metadata
 CHECKSUMS = "checksums.json"
 
 
@@ -71,37 +67,23 @@ def _verify(step_dir: Path) -> None:
                                     "(its checksum differs from the one written with it)")
 
 
-def _step(state: TrainState) -> int:
-    cycles = np.unique(np.asarray(state.cycle))
-    if cycles.size != 1:
-        raise ValueError(f"stacked states must all be at the same cycle, got {cycles.tolist()}")
-    return int(cycles[0])
-
-
-def save_checkpoint(directory: str | os.PathLike, state: TrainState, config: Config, *,
-                    seeds: Sequence[int] | None = None) -> Path:
-    """Save ``state`` as checkpoint number ``state.cycle`` under ``directory``.
-
-    ``seeds``: ``state`` holds these seeds' states stacked on a leading axis (a study);
-    all must be at the same cycle.
-    """
+def save_checkpoint(directory: str | os.PathLike, state: Any, step: int, meta: dict | None = None
+                    ) -> Path:
+    """Save ``state`` as checkpoint number ``step`` under ``directory``, with ``meta`` (JSON)."""
     directory = Path(directory)
-    cycle = _step(state)
-    meta = {"version": CHECKPOINT_VERSION, "cycle": cycle, "config": to_dict(config)}
-    if seeds is not None:
-        meta["seeds"] = [int(s) for s in seeds]
+    record = {**(meta or {}), "version": CHECKPOINT_VERSION, "step": int(step)}
     with _manager(directory) as manager:
-        manager.save(cycle, args=ocp.args.Composite(state=ocp.args.StandardSave(state),
-                                                     meta=ocp.args.JsonSave(meta)), force=True)
+        manager.save(int(step), args=ocp.args.Composite(state=ocp.args.StandardSave(state),
+                                                         meta=ocp.args.JsonSave(record)), force=True)
         manager.wait_until_finished()
-    step_dir = directory / str(cycle)
+    step_dir = directory / str(int(step))
     if jax.process_index() == 0:
         (step_dir / CHECKSUMS).write_text(json.dumps(_digests(step_dir), indent=0))
     return step_dir
 
 
-def latest_cycle(directory: str | os.PathLike) -> int | None:
-    """The newest complete checkpoint's cycle number, or None if there is none."""
+def latest_step(directory: str | os.PathLike) -> int | None:
+    """The newest complete checkpoint's step, or None if there is none."""
     directory = Path(directory)
     if not directory.is_dir():
         return None
@@ -109,25 +91,13 @@ def latest_cycle(directory: str | os.PathLike) -> int | None:
         return manager.latest_step()
 
 
-def all_cycles(directory: str | os.PathLike) -> list[int]:
-    """Cycle numbers of all complete checkpoints under ``directory``, oldest first."""
+def all_steps(directory: str | os.PathLike) -> list[int]:
+    """Steps of all complete checkpoints under ``directory``, oldest first."""
     directory = Path(directory)
     if not directory.is_dir():
         return []
     with _manager(directory, read_only=True) as manager:
         return sorted(manager.all_steps())
-
-
-def abstract_state(config: Config, sharding: jax.sharding.Sharding | None = None,
-                   seeds: int | None = None) -> TrainState:
-    """Shapes and dtypes of the :class:`TrainState` that ``config`` trains (no compute),
-    placed by ``sharding`` (default: this process's first device); with ``seeds``, that
-    many states stacked on a leading axis."""
-    init = make_train_for(config).init
-    keys = jax.random.PRNGKey(0) if seeds is None else jnp.zeros((seeds, 2), jnp.uint32)
-    shapes = jax.eval_shape(init if seeds is None else jax.vmap(init), keys)
-    sharding = sharding or jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
-    return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding), shapes)
 
 
 def _read_meta(manager, path: Path) -> dict:
@@ -138,115 +108,81 @@ def _read_meta(manager, path: Path) -> dict:
     if not isinstance(meta, dict) or meta.get("version") != CHECKPOINT_VERSION:
         version = meta.get("version") if isinstance(meta, dict) else None
         raise CheckpointError(f"{path}: checkpoint version {version!r}, this lazyq-jax reads "
-                              f"version {CHECKPOINT_VERSION}")
+                              f"version {CHECKPOINT_VERSION}; train it again (--overwrite)")
     return meta
 
 
-def load_checkpoint(directory: str | os.PathLike, cycle: int | None = None,
-                    expect: Config | None = None,
-                    sharding: jax.sharding.Sharding | None = None, *,
-                    seeds: Sequence[int] | None = None,
-                    target: TrainState | None = None) -> tuple[TrainState, Config]:
-    """Restore ``(state, config)`` from ``directory`` (the newest cycle unless given).
+def read_meta(directory: str | os.PathLike, step: int | None = None) -> dict:
+    """The JSON stored with checkpoint ``step`` (default: the newest) under ``directory``."""
+    directory = Path(directory)
+    step = latest_step(directory) if step is None else step
+    if step is None:
+        raise CheckpointError(f"{directory}: no checkpoint found")
+    with _manager(directory, read_only=True) as manager:
+        return _read_meta(manager, directory / str(step))
 
-    ``expect``: the config the caller is about to continue with (``--resume``); if
-    its network or optimiser settings differ from the stored ones, a
-    :class:`CheckpointError` names the differing fields.  ``seeds``: the checkpoint
-    must hold exactly these seeds stacked (a study); without it, a single run's.
-    ``sharding``: where the state goes (e.g. ``parallel.replicated(mesh)``; default:
-    this process's first device).  A checkpoint restores on any device count,
-    whatever wrote it.  A damaged or truncated checkpoint raises
-    :class:`CheckpointDamaged` (see :func:`load_latest_intact`).  ``target``: the
-    abstract state to restore into (e.g. ``jax.eval_shape(trainer.init, key)`` of a
-    task with another network input than the push task's; default
-    :func:`abstract_state` of the stored config), placed by ``sharding``.
+
+def load_checkpoint(directory: str | os.PathLike, target: Any, step: int | None = None,
+                    sharding: jax.sharding.Sharding | None = None,
+                    check: Callable[[Path, dict], None] | None = None) -> tuple[Any, dict]:
+    """Restore ``(state, meta)`` from ``directory`` (the newest step unless given).
+
+    ``target``: the abstract state to restore into (shapes and dtypes, e.g.
+    ``jax.eval_shape(agent.init, key, example)``), placed by ``sharding`` (default:
+    this process's first device); a checkpoint restores on any device count, whatever
+    wrote it.  ``check(path, meta)`` may raise :class:`CheckpointError` for a checkpoint
+    that does not fit what the caller is about to do (before the state is read).  A
+    damaged or truncated checkpoint raises :class:`CheckpointDamaged` (see
+    :func:`load_latest_intact`).
     """
     directory = Path(directory)
-    found = latest_cycle(directory)
+    found = latest_step(directory)
     if found is None:
-        raise CheckpointError(f"{directory}: no checkpoint found (train first with "
-                              "`python -m lazyq_jax train --run-dir ...`)")
-    cycle = found if cycle is None else cycle
-    path = directory / str(cycle)
+        raise CheckpointError(f"{directory}: no checkpoint found (train first)")
+    step = found if step is None else step
+    path = directory / str(step)
     with _manager(directory, read_only=True) as manager:
-        if cycle not in manager.all_steps():
-            raise CheckpointError(f"{directory}: no checkpoint for cycle {cycle}; "
+        if step not in manager.all_steps():
+            raise CheckpointError(f"{directory}: no checkpoint for step {step}; "
                                   f"available: {sorted(manager.all_steps())}")
         _verify(path)
         meta = _read_meta(manager, path)
+        if check is not None:
+            check(path, meta)
+        place = sharding or jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+        target = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=place), target)
         try:
-            config = from_dict(Config, meta["config"])
-        except (ConfigError, KeyError, TypeError) as e:
-            raise CheckpointError(f"{path}: stored config is not valid here ({e})") from e
-        stored_seeds = meta.get("seeds")
-        wanted = None if seeds is None else [int(s) for s in seeds]
-        if stored_seeds != wanted:
-            what = lambda s: "a single run" if s is None else f"a study of seeds {s}"
-            raise CheckpointError(f"{path}: holds {what(stored_seeds)}, expected {what(wanted)}")
-        if expect is not None:
-            _check_compatible(path, config, expect)
-        if target is None:
-            target = abstract_state(config, sharding, None if seeds is None else len(seeds))
-        else:
-            place = sharding or jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
-            target = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=place),
-                                  target)
-        try:
-            restored = manager.restore(cycle, args=ocp.args.Composite(
+            restored = manager.restore(step, args=ocp.args.Composite(
                 state=ocp.args.StandardRestore(target)))
         except Exception as e:
             first = str(e).strip().splitlines()[0][:300] if str(e).strip() else ""
             raise CheckpointDamaged(f"{path}: partial, damaged or incompatible checkpoint state "
                                     f"({type(e).__name__}: {first})") from None
-    state = restored["state"]
-    if _step(state) != cycle:
-        raise CheckpointError(f"{path}: holds cycle {_step(state)}, expected {cycle}")
-    return state.replace(key=jnp.asarray(state.key, jnp.uint32)), config
+    return restored["state"], meta
 
 
-def load_latest_intact(directory: str | os.PathLike, expect: Config,
+def load_latest_intact(directory: str | os.PathLike, target: Any,
                        sharding: jax.sharding.Sharding | None = None, *,
-                       seeds: Sequence[int] | None = None, target: TrainState | None = None,
-                       warn: Callable[[str], None] = print) -> tuple[TrainState, Config] | None:
+                       check: Callable[[Path, dict], None] | None = None,
+                       warn: Callable[[str], None] = print) -> tuple[Any, dict] | None:
     """The newest checkpoint under ``directory`` that is intact, for ``--resume``.
 
     Newer checkpoints that are damaged or truncated are moved aside to
-    ``<directory>_damaged/<cycle>`` (nothing is deleted) with a warning through
-    ``warn``, and the next older one is tried.  A checkpoint that does not fit
-    ``expect`` is an error (older ones would not fit either).  Returns None when
-    no intact checkpoint is left.  ``target``: as for :func:`load_checkpoint`.
+    ``<directory>_damaged/<step>`` (nothing is deleted) with a warning through
+    ``warn``, and the next older one is tried.  A checkpoint that ``check`` refuses is
+    an error (older ones would not fit either).  Returns None when no intact
+    checkpoint is left.
     """
     directory = Path(directory)
-    for cycle in reversed(all_cycles(directory)):
+    for step in reversed(all_steps(directory)):
         try:
-            return load_checkpoint(directory, cycle, expect=expect, sharding=sharding, seeds=seeds,
-                                   target=target)
+            return load_checkpoint(directory, target, step, sharding=sharding, check=check)
         except CheckpointDamaged as e:
-            aside = directory.parent / f"{directory.name}_damaged" / str(cycle)
+            aside = directory.parent / f"{directory.name}_damaged" / str(step)
             if jax.process_index() == 0:
                 aside.parent.mkdir(parents=True, exist_ok=True)
                 if aside.exists():
                     shutil.rmtree(aside)
-                shutil.move(str(directory / str(cycle)), str(aside))
+                shutil.move(str(directory / str(step)), str(aside))
             warn(f"warning: {e}; moved it to {aside} and resuming from an older checkpoint")
     return None
-
-
-# Fields that change what a cycle computes (``cycles`` may grow: a run can be extended).
-_MUST_MATCH = ("width", "depth", "learning_rate", "gamma", "double_dqn", "clip", "batch_size",
-               "epochs", "resample_neighbours")
-
-
-def _check_compatible(path: Path, stored: Config, expect: Config) -> None:
-    diffs = [f"train.{name}: checkpoint {getattr(stored.train, name)!r} vs requested "
-             f"{getattr(expect.train, name)!r}" for name in _MUST_MATCH
-             if getattr(stored.train, name) != getattr(expect.train, name)]
-    if stored.collect != expect.collect or stored.seed != expect.seed:
-        diffs.append("collect config or seed differ (a different dataset)")
-    if stored.neighbours != expect.neighbours:
-        diffs.append("neighbours config differs")
-    if stored.online != expect.online:
-        diffs.append("online config differs (another sequence of datasets)")
-    if diffs:
-        raise CheckpointError(f"{path}: checkpoint does not match the requested config: "
-                              + "; ".join(diffs))

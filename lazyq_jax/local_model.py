@@ -110,13 +110,26 @@ def safe_norm(x, axis=-1):
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
 
 
-def greedy_action(beta, action_length):
-    """Greedy action of the lazy model, Eq. (9): ``c * beta / ||beta||`` (``c`` = ``action_length``).
+def greedy_action(beta, action_length, action_set: str = "ball"):
+    """Greedy action of the lazy model, Eq. (9): the maximiser of ``beta . a`` over the
+    action set: ``c beta / ||beta||`` on the ball ``||a|| <= c`` (``"ball"``, the paper's),
+    ``c sign(beta)`` on the box ``|a_i| <= c`` (``"box"``).
 
-    For ``beta = 0`` (every action equally good) this returns the zero vector,
-    with finite (zero) gradients.
+    Where the maximiser is not unique the centre is taken: ``beta = 0`` gives the zero
+    action (every action equally good), and on the box a component with ``beta_i = 0``
+    stays 0 (any value in ``[-c, c]`` is optimal there).  Gradients are finite.
     """
     beta = jnp.asarray(beta, jnp.float32)
+    if action_set == "box":
+        return action_length * jnp.sign(beta)
     sq = jnp.sum(beta * beta, axis=-1, keepdims=True)
     pos = sq > 0
     return jnp.where(pos, action_length * beta * jax.lax.rsqrt(jnp.where(pos, sq, 1.0)), 0.0)
+
+
+def max_linear(beta, action_length, action_set: str = "ball"):
+    """``max_a beta . a`` over the action set (Eq. 7's second term): ``c ||beta||`` on the
+    ball, ``c sum_i |beta_i|`` on the box."""
+    if action_set == "box":
+        return action_length * jnp.sum(jnp.abs(jnp.asarray(beta, jnp.float32)), axis=-1)
+    return action_length * safe_norm(beta)

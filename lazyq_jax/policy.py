@@ -2,31 +2,55 @@
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import struct
 
 from lazyq_jax.local_model import fit_local_linear, greedy_action
-from lazyq_jax.neighbours import GridIndex, build_index, query_neighbours
-from lazyq_jax.neighbours.query import ScanIndex, build_scan_index, query_neighbours_scan
+from lazyq_jax.neighbours import (GridIndex, ScanIndex, build_index, build_scan_index, is_grid_space,
+                                  query_neighbours, query_neighbours_scan)
 from lazyq_jax.targets import bootstrap_table
 from lazyq_jax.types import Transitions
 
 
-class LazyPolicy(NamedTuple):
-    """Everything the policy reads: a pytree, so it can be passed into ``jit``."""
+@struct.dataclass
+class LazyPolicy:
+    """Everything the policy reads: a pytree, so it can be passed into ``jit`` (and stacked
+    over seeds for ``vmap``)."""
 
-    index: GridIndex | ScanIndex  # the push task's grid (2-D states, angle goals), else a scan
+    index: GridIndex | ScanIndex  # the grid (2-D states, angle goals), else a scan
     actions: jax.Array  # [N, n_a] the dataset's actions a_j
     values: jax.Array  # [N] y_j = r_j + gamma (1 - done_j) V(s'_j, g_j), from the trained V
-    action_length: float
+    action_length: jax.Array  # c (a float32 scalar)
+    action_set: str = struct.field(pytree_node=False, default="ball")
+
+
+def policy_index(data_s, data_g, *, k: int, radius_s: float, radius_g: float, growth: float,
+                 max_level: int, bounds=None, capacity: int | None = None):
+    """The policy's neighbour index over a dataset (its first ``len(data_s)`` rows): the grid
+    for 2-D states with angle goals (``bounds``/``capacity`` as in
+    :func:`lazyq_jax.neighbours.build_index`), else the scan (rows up to ``capacity``
+    padded with points no query reaches)."""
+    if is_grid_space(data_s, data_g):
+        return build_index(data_s, data_g, k=k, radius_s=radius_s, radius_g=radius_g, growth=growth,
+                           max_level=max_level, bounds=bounds, capacity=capacity)
+    s = np.asarray(data_s, np.float32)
+    g = None if data_g is None else np.asarray(data_g, np.float32)
+    pad = (capacity or s.shape[0]) - s.shape[0]
+    if pad:  # far away in state space: never inside a ball within max_level growths
+        far = np.float32(1e6 * radius_s * growth ** max_level)
+        s = np.concatenate([s, np.full((pad, s.shape[1]), far, np.float32)])
+        g = None if g is None else np.concatenate([g, np.zeros((pad, *g.shape[1:]), np.float32)])
+    return build_scan_index(s, g, k=k, radius_s=radius_s, radius_g=radius_g, growth=growth,
+                            max_level=max_level)
 
 
 def make_lazy_policy(value_fn: Callable, data: Transitions, *, gamma: float, action_length: float,
-                     k: int = 20, radius_s: float = 0.06, radius_g: float = 0.1,
-                     growth: float = 2 ** (1 / 3), max_level: int = 8,
+                     action_set: str = "ball", k: int = 20, radius_s: float = 0.06,
+                     radius_g: float = 0.1, growth: float = 2 ** (1 / 3), max_level: int = 8,
                      bounds: tuple[float, float, float, float] | None = None) -> LazyPolicy:
     """Precompute what the policy needs from a trained ``value_fn(s, g)`` and its dataset.
 
@@ -37,25 +61,21 @@ def make_lazy_policy(value_fn: Callable, data: Transitions, *, gamma: float, act
     (``[N, d_s]``, goals ``[N, d_g]`` or ``None``) a scan of the data per query
     (:mod:`lazyq_jax.neighbours.query`).
     """
-    if np.ndim(data.s) == 2 and np.shape(data.s)[1] == 2 and data.g is not None and np.ndim(data.g) == 1:
-        index = build_index(data.s, data.g, k=k, radius_s=radius_s, radius_g=radius_g, growth=growth,
-                            max_level=max_level, bounds=bounds)
-    else:
-        index = build_scan_index(data.s, data.g, k=k, radius_s=radius_s, radius_g=radius_g, growth=growth,
-                                 max_level=max_level)
+    index = policy_index(data.s, data.g, k=k, radius_s=radius_s, radius_g=radius_g, growth=growth,
+                         max_level=max_level, bounds=bounds)
     values = jax.jit(bootstrap_table, static_argnums=(0,))(value_fn, data, gamma)
-    return LazyPolicy(index, data.a, values, float(action_length))
+    return LazyPolicy(index, data.a, values, jnp.float32(action_length), action_set)
 
 
 def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):
-    """Greedy actions ``a = c beta / |beta|`` (Eq. 9) for a batch of states ``s[B, d_s]``, goals
-    ``g[B]`` / ``g[B, d_g]`` / ``None`` (as the dataset's).
+    """Greedy actions (Eq. 9) for a batch of states ``s[B, d_s]``, goals ``g[B]`` /
+    ``g[B, d_g]`` / ``None`` (as the dataset's).
 
     For each query: its neighbourhood in the dataset, the local fit
-    ``y_j ~ alpha + beta.a_j`` (Eq. 5-6), and the action of length ``c`` along beta.
-    Pure and jittable (use it inside ``lax.scan`` rollouts).  A query with no
-    neighbourhood within ``max_level`` growths (far outside the data) gets the zero
-    action and ``found = False``.
+    ``y_j ~ alpha + beta.a_j`` (Eq. 5-6), and the maximiser of ``beta . a`` over the
+    action set (:func:`lazyq_jax.local_model.greedy_action`).  Pure and jittable (use
+    it inside ``lax.scan`` rollouts).  A query with no neighbourhood within
+    ``max_level`` growths (far outside the data) gets the zero action and ``found = False``.
 
     Returns ``(actions[B, n_a], beta[B, n_a], found[B])``.
     """
@@ -65,6 +85,6 @@ def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):
         nb = query_neighbours(policy.index, key, s, g)
     rows = jnp.maximum(nb.idx, 0)
     _, beta = fit_local_linear(policy.actions[rows], policy.values[rows])
-    action = greedy_action(beta, policy.action_length)
+    action = greedy_action(beta, policy.action_length, policy.action_set)
     found = nb.level >= 0
     return jnp.where(found[:, None], action, 0.0), beta, found

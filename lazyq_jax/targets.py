@@ -1,7 +1,9 @@
 """Bellman targets of the lazy model (paper Eq. 7-8, 11-14).
 
-The action set is the ball of radius ``c`` (``action_length``), so
-``max_{|a|<=c} beta^T a = c ||beta||`` (Eq. 7), attained at ``c beta/||beta||`` (Eq. 9).
+The action set is the ball of radius ``c`` (``action_length``; ``action_set="ball"``, the
+paper's), so ``max_{|a|<=c} beta^T a = c ||beta||`` (Eq. 7), attained at
+``c beta/||beta||`` (Eq. 9); or the box ``|a_i| <= c`` (``"box"``), where the maximum is
+``c sum_i |beta_i|`` at ``c sign(beta)``.
 """
 
 from __future__ import annotations
@@ -13,32 +15,34 @@ import jax.numpy as jnp
 from flax import struct
 from jax.sharding import Mesh
 
-from lazyq_jax.local_model import apply_projection, fit_local_linear, greedy_action, safe_norm
+from lazyq_jax.local_model import (apply_projection, fit_local_linear, greedy_action, max_linear,
+                                   safe_norm)
 from lazyq_jax.parallel import constrain, mesh_size, replicated, sharded
 from lazyq_jax.types import Transitions
 
 ValueFn = Callable[[jax.Array, jax.Array], jax.Array]  # (s [B, d_s], g [B] | [B, d_g] | None) -> V [B]
 
 
-def lazy_target(alpha, beta, values, action_length, clip=True):
-    """``V(s, g)`` of the lazy model: Eq. (7) ``alpha + c ||beta||`` (``clip=False``) or
-    Eq. (8) ``min(alpha + c ||beta||, max_j values_j)`` (``clip=True``).
+def lazy_target(alpha, beta, values, action_length, clip=True, action_set="ball"):
+    """``V(s, g)`` of the lazy model: Eq. (7) ``alpha + max_a beta.a`` (``c ||beta||`` on the
+    ball; ``clip=False``) or Eq. (8) ``min(alpha + max_a beta.a, max_j values_j)``
+    (``clip=True``).
 
     Returns ``(target [...], clip_active [...] bool)``; ``clip_active`` marks where the
     max-bound of Eq. (8) was the smaller term (always false when ``clip=False``).
     """
-    linear = alpha + action_length * safe_norm(beta)
+    linear = alpha + max_linear(beta, action_length, action_set)
     return _clip(linear, values, clip)
 
 
-def double_dqn_target(alpha, beta, beta_online, values, action_length, clip=True):
+def double_dqn_target(alpha, beta, beta_online, values, action_length, clip=True, action_set="ball"):
     """Eq. (13)-(14): the action ``a_opt = c beta_online / ||beta_online||`` chosen by the
     online network's fit, valued by the target network's fit ``alpha + beta . a_opt``,
     clipped (``clip=True``) by the largest target-network neighbour value.
 
     Returns ``(target [...], clip_active [...] bool)``.
     """
-    linear = alpha + jnp.sum(beta * greedy_action(beta_online, action_length), axis=-1)
+    linear = alpha + jnp.sum(beta * greedy_action(beta_online, action_length, action_set), axis=-1)
     return _clip(linear, values, clip)
 
 
@@ -94,7 +98,7 @@ def evaluate_in_batches(v: ValueFn, s, g, batch_size: int, mesh: Mesh | None = N
 
 def dataset_targets(v_target: ValueFn, data: Transitions, neighbours_idx, *, gamma, action_length,
                     clip=True, v_online: ValueFn | None = None, projection=None, batch_size=65536,
-                    mesh: Mesh | None = None):
+                    mesh: Mesh | None = None, action_set: str = "ball"):
     """Targets ``Y [N]`` for the whole dataset and their :class:`TargetDiagnostics`.
 
     * DQN form (``v_online is None``), Eq. (11)-(12): ``alpha, beta`` fitted to
@@ -121,10 +125,10 @@ def dataset_targets(v_target: ValueFn, data: Transitions, neighbours_idx, *, gam
 
     alpha, beta, y_nb = fit(v_target)
     if v_online is None:
-        target, active = lazy_target(alpha, beta, y_nb, action_length, clip)
+        target, active = lazy_target(alpha, beta, y_nb, action_length, clip, action_set)
     else:
         _, beta_o, _ = fit(v_online)
-        target, active = double_dqn_target(alpha, beta, beta_o, y_nb, action_length, clip)
+        target, active = double_dqn_target(alpha, beta, beta_o, y_nb, action_length, clip, action_set)
     return target, TargetDiagnostics(clip_active=active, alpha=alpha, beta_norm=safe_norm(beta))
 
 

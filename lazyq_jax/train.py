@@ -2,7 +2,7 @@
 
 ``make_train(config, action_length)`` returns a :class:`Trainer` of pure functions:
 
-* ``init(key) -> TrainState``
+* ``init(key, data) -> TrainState`` (sized from ``data``)
 * ``run_cycle(state, data, idx, n_valid=None) -> (state, metrics)``: one cycle: targets from
   the parameters frozen at the start of the cycle (the DQN target network, Eq. 11-12),
   then ``epochs`` epochs of Adam on ``mean((V - Y)^2)`` (Eq. 10) in ``lax.scan``.
@@ -11,17 +11,19 @@
   the frozen network's fit.
 * ``train(key, data, idx, n_valid=None) -> (state, metrics)``: all cycles in one
   ``lax.scan``.  It keeps ``idx`` fixed; ``resample_neighbours`` is honoured by the
-  drivers (:func:`lazyq_jax.pipeline.fit`, :mod:`lazyq_jax.study`), which draw fresh
-  neighbourhoods between cycles.
+  runner, which draws fresh neighbourhoods between cycles.
 
 All three are pure: ``jax.vmap`` them over keys (and datasets) to train many seeds in
-one program, as :mod:`lazyq_jax.study` does.  Datasets of different sizes are stacked
+one program, as the runner does.  Datasets of different sizes are stacked
 by padding them to a common length (:func:`lazyq_jax.types.pad_transitions`) and
 passing each one's true size ``n_valid``: rows at or beyond ``n_valid`` are never
 trained on nor counted in the metrics, and a dataset trains exactly as it would
 unpadded (the shuffle below draws the same order for its rows).
 
-The host-side driver with checkpoints, progress and resume is :func:`lazyq_jax.pipeline.fit`.
+Sizes come from the data: ``init(key, data)`` builds the network for ``data``'s state
+size and goal kind, and a trainer or state used with data of other sizes fails with a
+message naming both.  The host-side driver with checkpoints, progress and resume is
+the runner (:mod:`lazyq_jax.run`), through the lazy agent (:mod:`lazyq_jax.agents.lazy`).
 """
 
 from __future__ import annotations
@@ -35,13 +37,12 @@ import optax
 from flax import struct
 from jax.sharding import Mesh, PartitionSpec as P
 
-from lazyq_jax.config import Config, TrainConfig
-from lazyq_jax.networks import ValueNetwork
-from lazyq_jax.parallel import AXIS, check_divisible, mesh_size
+from lazyq_jax.config import TrainConfig
 from lazyq_jax.local_model import safe_norm
+from lazyq_jax.networks import ValueNetwork, goal_kind
+from lazyq_jax.parallel import AXIS, check_divisible, mesh_size
 from lazyq_jax.targets import double_dqn_target, lazy_target, local_fits
 from lazyq_jax.types import Transitions
-
 
 
 @struct.dataclass
@@ -90,19 +91,26 @@ def check_mesh(config: TrainConfig, mesh: Mesh | None) -> None:
     check_divisible("train.target_batch_size", config.target_batch_size, mesh)
 
 
-def make_train(config: TrainConfig, action_length: float, *, state_dim: int = 2,
-               goal: str | int | None = "angle", state_scale=1.0, probes=None,
+def _describe(state_dim, goal) -> str:
+    goal = {None: "no goal", "angle": "angle goals g[N]"}.get(goal, f"goals g[N, {goal}]")
+    return f"states s[N, {state_dim}] with {goal}"
+
+
+def make_train(config: TrainConfig, action_length: float, *, action_set: str = "ball",
+               state_scale=1.0, probes=None, state_dim: int | None = None,
+               goal: str | int | None = "from data",
                progress: Callable[[int], None] | None = None, mesh: Mesh | None = None) -> Trainer:
     """Build the pure training functions for ``config`` (see module docstring).
 
-    ``action_length`` is ``c`` in ``max_{|a|<=c} beta.a = c|beta|`` (Eq. 7): the action
-    set is the ball of radius ``c`` in ``n_a`` dimensions, for any ``n_a``.  The data:
-    states ``[N, state_dim]``; goals ``goal = "angle"`` (``g[N]``, periodic), an int
-    ``d_g`` (``g[N, d_g]``, Euclidean) or ``None`` (no goals; pass ``g = None``), as
-    :func:`lazyq_jax.networks.goal_kind` tells from a dataset.  ``state_scale``: the
-    states are divided by it (a number or one per dimension) before the network.
-    ``probes = (s[P, d_s], g)``: states whose values are logged every cycle
-    (``metrics["probe_values"]``).
+    ``action_length`` is ``c`` and ``action_set`` the action set (``"ball"``: ``|a| <= c``,
+    the paper's, ``max_a beta.a = c |beta|`` in Eq. 7; ``"box"``: ``|a_i| <= c``, ``c sum
+    |beta_i|``), for any ``n_a``.  The sizes come from the data passed to ``init``:
+    states ``[N, d_s]``, goals ``g[N]`` (an angle, periodic), ``g[N, d_g]`` (a vector) or
+    ``None``.  ``state_dim`` and ``goal`` (``"angle"``, an int ``d_g`` or ``None``) may fix
+    them instead (then ``init(key)`` needs no data, and data of other sizes are refused
+    with a message naming both).  ``state_scale``: the states are divided by it (a
+    number or one per dimension) before the network.  ``probes = (s[P, d_s], g)``:
+    states whose values are logged every cycle (``metrics["probe_values"]``).
     ``progress``, if given, is called on the host with the epoch number after every
     epoch (through ``jax.debug.callback``) to drive a progress bar.
 
@@ -120,24 +128,58 @@ def make_train(config: TrainConfig, action_length: float, *, state_dim: int = 2,
         raise TypeError(f"make_train needs a TrainConfig, got {type(config).__name__}")
     check_mesh(config, mesh)
     d = mesh_size(mesh)
-    if not (isinstance(state_dim, int) and state_dim >= 1):
+    if state_dim is not None and not (isinstance(state_dim, int) and state_dim >= 1):
         raise ValueError(f"state_dim must be an integer >= 1, got {state_dim!r}")
-    if not (goal in ("angle", None) or (isinstance(goal, int) and goal >= 1)):
+    if not (goal in ("angle", None, "from data") or (isinstance(goal, int) and goal >= 1)):
         raise ValueError(f"goal must be 'angle', None or a vector dimension >= 1, got {goal!r}")
-    scale = tuple(np.broadcast_to(np.asarray(state_scale, np.float64), (state_dim,)).tolist())
+    if action_set not in ("ball", "box"):
+        raise ValueError(f"action_set must be 'ball' or 'box', got {action_set!r}")
+    scale = np.asarray(state_scale, np.float64)
+    if scale.ndim > 1 or not np.all(scale > 0):
+        raise ValueError(f"state_scale must be a number > 0 or one per state dimension, got {state_scale!r}")
     network = ValueNetwork(width=config.width, depth=config.depth,
-                           state_scale=scale[0] if len(set(scale)) == 1 else scale)
-    example_g = None if goal is None else jnp.zeros((1,) if goal == "angle" else (1, goal))
+                           state_scale=float(scale) if scale.ndim == 0 else tuple(scale.tolist()))
+    fixed = (state_dim, goal) if state_dim is not None and goal != "from data" else None
+
+    def sizes(data: Transitions | None, who: str):
+        """``(d_s, goal kind)`` of ``data`` (or the fixed ones), checked against each other
+        and the state scale."""
+        if data is None:
+            if fixed is None:
+                raise ValueError(f"{who} needs example data to size the network (init(key, data)), "
+                                 "or make_train(..., state_dim=..., goal=...)")
+            return fixed
+        found = (int(np.shape(data.s)[-1]), goal_kind(data.g))
+        if fixed is not None and found != fixed:
+            raise ValueError(f"{who}: the trainer was built for {_describe(*fixed)} but the data have "
+                             f"{_describe(*found)}; build it for this data (leave state_dim and goal "
+                             "unset to take them from the data)")
+        if scale.ndim == 1 and scale.size != found[0]:
+            raise ValueError(f"{who}: state_scale has {scale.size} entries but the states have "
+                             f"{found[0]} dimensions")
+        return found
+
+    def check_state(state: TrainState, data: Transitions, who: str):
+        d_s, kind = sizes(data, who)
+        width = d_s + (0 if kind is None else 2 if kind == "angle" else kind)
+        stored = int(state.params["Dense_0"]["kernel"].shape[-2])
+        if stored != width:
+            raise ValueError(f"{who}: the state's network takes inputs of width {stored}, but the "
+                             f"data ({_describe(d_s, kind)}) encode to width {width}: the state was "
+                             "trained on data of other sizes")
+
     # The training forward pass of one device's share (batch norm synchronised over the mesh).
     train_network = network if mesh is None else network.clone(axis_name=AXIS)
     optimizer = optax.adam(config.learning_rate)
 
-    def init(key: jax.Array) -> TrainState:
+    def init(key: jax.Array, data: Transitions | None = None) -> TrainState:
+        d_s, kind = sizes(data, "init")
         if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
             key = jax.random.key_data(key)
         key = jnp.asarray(key, jnp.uint32)
         key, k_init = jax.random.split(key)
-        variables = network.init(k_init, jnp.zeros((1, state_dim)), example_g, train=False)
+        example_g = None if kind is None else jnp.zeros((1,) if kind == "angle" else (1, kind))
+        variables = network.init(k_init, jnp.zeros((1, d_s)), example_g, train=False)
         params = variables["params"]
         return TrainState(params=params, batch_stats=variables["batch_stats"],
                           opt_state=optimizer.init(params), key=key, cycle=jnp.int32(0))
@@ -203,12 +245,13 @@ def make_train(config: TrainConfig, action_length: float, *, state_dim: int = 2,
 
     def run_cycle(state: TrainState, data: Transitions, idx: jax.Array,
                   n_valid: jax.Array | None = None):
+        check_state(state, data, "run_cycle")
         n_valid = valid_rows(data, n_valid)
         valid = jnp.arange(data.r.shape[0]) < n_valid
         key, k_epochs = jax.random.split(state.key)
         # The target network: the parameters frozen at the start of the cycle (Eq. 11-12).
         alpha, beta, y_nb = fits(state, data, idx)
-        dqn = lazy_target(alpha, beta, y_nb, action_length, config.clip)
+        dqn = lazy_target(alpha, beta, y_nb, action_length, config.clip, action_set)
 
         def one_epoch(state, xs):
             e, k = xs
@@ -216,7 +259,7 @@ def make_train(config: TrainConfig, action_length: float, *, state_dim: int = 2,
             if config.double_dqn:  # Eq. (13)-(14): the online network picks the action
                 _, beta_online, _ = fits(state, data, idx)
                 y, active = double_dqn_target(alpha, beta, beta_online, y_nb, action_length,
-                                              config.clip)
+                                              config.clip, action_set)
             state, loss = epoch(state, data, y, k, n_valid)
             if progress is not None:
                 jax.debug.callback(progress, e)  # ordered=True needs a single device
@@ -245,7 +288,7 @@ def make_train(config: TrainConfig, action_length: float, *, state_dim: int = 2,
         def cycle(state, _):
             return run_cycle(state, data, idx, n_valid)
 
-        return jax.lax.scan(cycle, init(key), None, length=config.cycles)
+        return jax.lax.scan(cycle, init(key, data), None, length=config.cycles)
 
     return Trainer(config, network, optimizer, init, epoch, run_cycle, train, value_fn)
 
@@ -253,17 +296,3 @@ def make_train(config: TrainConfig, action_length: float, *, state_dim: int = 2,
 def valid_rows(data: Transitions, n_valid: jax.Array | None) -> jax.Array:
     """``n_valid`` as an int32 scalar, or the number of rows of ``data`` if None."""
     return jnp.asarray(data.r.shape[0] if n_valid is None else n_valid, jnp.int32)
-
-
-# Probe points (s, g) of the push task whose values are logged every cycle: finger behind
-# the disk for goals 0 and pi/2 (should become valuable), the same spots for the opposite
-# goals, and a finger far from the disk.
-PUSH_PROBES = (((-0.35, 0.0), (0.0, -0.35), (-0.35, 0.0), (0.0, -0.35), (0.9, 0.9)),
-               (0.0, np.pi / 2, np.pi, -np.pi / 2, 0.0))
-
-
-def make_train_for(config: Config, **kwargs) -> Trainer:
-    """:func:`make_train` for a whole run :class:`Config` of the push task."""
-    probes = tuple(jnp.asarray(x, jnp.float32) for x in PUSH_PROBES)
-    return make_train(config.train, config.collect.push.action_length,
-                      state_scale=config.collect.start_range, probes=probes, **kwargs)

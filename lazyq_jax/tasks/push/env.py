@@ -17,7 +17,7 @@ from flax import struct
 with contextlib.redirect_stdout(io.StringIO()):
     from mujoco import mjx
 
-from lazyq_jax.config import PushConfig
+from lazyq_jax.tasks.push.config import PushConfig
 
 _SCENE = "push.xml"
 
@@ -40,7 +40,7 @@ class PushState:
 
 def load_mj_model(config: PushConfig = PushConfig()) -> mujoco.MjModel:
     """The native MuJoCo model of the scene shipped in the package, set to ``config``."""
-    xml = importlib.resources.files("lazyq_jax.env").joinpath("assets", _SCENE).read_text()
+    xml = importlib.resources.files("lazyq_jax.tasks.push").joinpath("assets", _SCENE).read_text()
     model = mujoco.MjModel.from_xml_string(xml)
     apply_push_config(model, config)
     return model
@@ -158,7 +158,7 @@ class PushEnv:
         A finger inside or touching the disk is never simulated: outside ``jit`` it
         raises ``ValueError``; under ``jit`` (where raising is impossible) the finger
         is moved radially outward to touching distance plus 1e-4.  Samplers in
-        :mod:`lazyq_jax.env.sampling` only produce valid starts.
+        :mod:`lazyq_jax.tasks.sampling` only produce valid starts.
         """
         finger = jnp.asarray(finger_xy, jnp.float32)
         disk = jnp.zeros_like(finger) if disk_xy is None else jnp.asarray(disk_xy, jnp.float32)
@@ -175,7 +175,7 @@ class PushEnv:
                 raise ValueError(
                     f"reset: the finger starts inside or touching the disk (centre distance "
                     f"{float(np.min(dist)):.4f} <= {min_dist}); sample starts with "
-                    "lazyq_jax.env.sample_outside_disk")
+                    "lazyq_jax.tasks.sampling.sample_outside_disk")
             return PushState(finger, disk)
         rel = finger - disk
         dist = jnp.linalg.norm(rel, axis=-1, keepdims=True)

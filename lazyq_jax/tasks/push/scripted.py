@@ -29,7 +29,7 @@ import math
 import jax
 import jax.numpy as jnp
 
-from lazyq_jax.config import PushConfig
+from lazyq_jax.tasks.push.config import PushConfig
 
 
 def _unit(v: jax.Array) -> jax.Array:

@@ -8,7 +8,7 @@ import mujoco
 import numpy as np
 from mujoco import rollout
 
-from lazyq_jax.env.push import PushEnv, coulomb_friction, normalize_action
+from lazyq_jax.tasks.push.env import PushEnv, coulomb_friction, normalize_action
 
 
 def native_push(env: PushEnv, finger_xy: np.ndarray, disk_xy: np.ndarray, action: np.ndarray,

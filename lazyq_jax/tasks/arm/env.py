@@ -6,7 +6,7 @@ frictionless fingertip-disk contact pair, quasistatic moves of ``move_substeps``
 + ``settle_substeps``).  What changes is the agent: its state is the arm's joint
 angles ``q`` (``d_s = 3``), its action a joint move ``dq`` of norm
 ``action_length`` radians (``n_a = 3``), its goal the push direction angle
-(rewarded by :func:`lazyq_jax.env.reward.push_reward`, Eq. 15).
+(rewarded by :func:`lazyq_jax.tasks.push.reward.push_reward`, Eq. 15).
 
 Geometry (:class:`ArmConfig` defaults): base at ``(0, -1)``, 0.25 outside the
 1.5 x 1.5 table; links 0.9, 0.7, 0.4 (reach 2.0); joint ranges ``q1 in [0, pi]``
@@ -63,10 +63,11 @@ from flax import struct
 with contextlib.redirect_stdout(io.StringIO()):
     from mujoco import mjx
 
-from lazyq_jax.config import ConfigError, PushConfig
-from lazyq_jax.env.push import _is_concrete, _x64, apply_push_config, coulomb_friction, normalize_action
-from lazyq_jax.env.reward import push_reward
-from lazyq_jax.env.sampling import rejection_sample
+from lazyq_jax.config import ConfigError
+from lazyq_jax.tasks.push.config import PushConfig
+from lazyq_jax.tasks.push.env import _is_concrete, _x64, apply_push_config, coulomb_friction, normalize_action
+from lazyq_jax.tasks.push.reward import push_reward
+from lazyq_jax.tasks.sampling import rejection_sample
 
 _SCENE = "arm.xml"
 ARM_JOINTS = ("q1", "q2", "q3")
@@ -198,7 +199,7 @@ def joint_path(q: jax.Array, dq: jax.Array, config: ArmConfig) -> jax.Array:
 
 
 def _build_spec(config: ArmConfig) -> mujoco.MjSpec:
-    xml = importlib.resources.files("lazyq_jax.env").joinpath("assets", _SCENE).read_text()
+    xml = importlib.resources.files("lazyq_jax.tasks.arm").joinpath("assets", _SCENE).read_text()
     spec = mujoco.MjSpec.from_string(xml)
     spec.body("base").pos = [*config.base_xy, 0.0]
     for i, (name, length) in enumerate(zip(_LINKS, config.link_lengths)):
@@ -275,7 +276,7 @@ class ArmEnv:
     >>> state = env.reset(jnp.array([1.2, 0.9, 1.0]))        # disk at the origin
     >>> state, disk_delta = env.step(state, jnp.array([0.0, 0.0, 1.0]))
 
-    Precision as :class:`lazyq_jax.env.PushEnv`: the physics runs in float64 when the
+    Precision as :class:`lazyq_jax.tasks.push.env.PushEnv`: the physics runs in float64 when the
     env is built inside ``with jax.enable_x64(True)`` (and must then be traced
     there), in float32 otherwise; states and outputs are float32 either way.
 

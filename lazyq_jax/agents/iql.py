@@ -1,0 +1,123 @@
+"""Goal-conditioned Implicit Q-Learning.
+
+Kostrikov, Nair & Levine, "Offline Reinforcement Learning with Implicit Q-Learning",
+ICLR 2022 (arXiv:2110.06169), goal-conditioned as OGBench's ``gciql`` (Park et al.
+2024).  Per step, on one minibatch, all three losses (one Adam over all parameters):
+
+* value, expectile regression (IQL Eq. 5) on the target critics:
+  ``L_V = E[|tau - 1(d < 0)| d^2]``, ``d = min(Q1_t, Q2_t)(s, a, g) - V(s, g)``,
+  ``tau = expectile`` (0.9);
+* critics (IQL Eq. 6): ``L_Q = sum_i E[(Q_i(s, a, g) - r - gamma (1 - done) V(s', g))^2]``
+  (``V(s')`` not differentiated);
+* actor, advantage-weighted regression (IQL Eq. 7):
+  ``L_pi = -E[min(exp(beta A), max_weight) log pi(a | s, g)]``, ``A = Q_t - V``,
+  ``beta = temperature``.
+
+Target critics follow the critics by Polyak averaging (``tau`` 0.005).
+
+The actor has fixed concentration (:func:`~lazyq_jax.agents.common.log_likelihood`):
+on the sphere (``"ball"``) a von Mises-Fisher distribution with mean direction
+``mu = u / |u|`` (``u`` the network's ``n_a`` outputs), ``log pi(a) = kappa cos(a, mu) +
+const``; in the box a Gaussian with mean ``c tanh(u)``.  For any fixed concentration the
+weighted likelihood has the same maximiser (the concentration only scales the loss,
+which Adam undoes), and acting uses the mode ``c mu``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from lazyq_jax.agents.base import Problem, Spec
+from lazyq_jax.agents.common import (Baseline, BaselineConfig, apply_ensemble, apply_mlp, check_range,
+                                     init_ensemble, log_likelihood, mask_of, mlp, observe,
+                                     observe_action, polyak, squash)
+from lazyq_jax.types import Transitions
+
+
+@dataclasses.dataclass(frozen=True)
+class IQLConfig(BaselineConfig):
+    """:class:`BaselineConfig` plus ``tau`` (Polyak rate of the target critics),
+    ``expectile`` (of the value regression), ``temperature`` (AWR ``beta``) and
+    ``max_weight`` (cap of the AWR weights)."""
+
+    tau: float = 0.005
+    expectile: float = 0.9
+    temperature: float = 3.0
+    max_weight: float = 100.0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_range(self, "tau", 0.0, 1.0, lo_open=True)
+        check_range(self, "expectile", 0.0, 1.0, lo_open=True, hi_open=True)
+        check_range(self, "temperature", 0.0, math.inf)
+        check_range(self, "max_weight", 0.0, math.inf, lo_open=True)
+
+
+class IQL(Baseline):
+    name = "iql"
+    config_class = IQLConfig
+
+    def __init__(self, config=None, problem=None, progress=None):
+        super().__init__(config, problem, progress)
+        self.value_net, self.critic_net = mlp(self.config, 1), mlp(self.config, 1)
+        self.optimizer = optax.adam(self.config.learning_rate)
+
+    def init_model(self, key: jax.Array, spec: Spec) -> Any:
+        kv, kq, kp = jax.random.split(key, 3)
+        ex = spec.example()
+        x, xa = observe(self.problem, ex.s, ex.g), observe_action(self.problem, ex.s, ex.g, ex.a)
+        params = {"value": self.value_net.init(kv, x),
+                  "critic": init_ensemble(self.critic_net, kq, xa),
+                  "actor": mlp(self.config, spec.action_dim).init(kp, x)}
+        return {"params": params, "target_critic": params["critic"],
+                "opt": self.optimizer.init(params)}
+
+    def pi(self, actor: Any, s: jax.Array, g: jax.Array | None) -> jax.Array:
+        return squash(self.problem, apply_mlp(self.config, actor, observe(self.problem, s, g)))
+
+    def loss(self, params: Any, target_critic: Any, b: Transitions):
+        cfg, problem = self.config, self.problem
+        x = observe(problem, b.s, b.g)
+        xa = observe_action(problem, b.s, b.g, b.a)
+        q_t = jnp.min(apply_ensemble(self.critic_net, target_critic, xa)[..., 0], axis=0)
+        v = self.value_net.apply(params["value"], x)[:, 0]
+        d = q_t - v
+        value_loss = jnp.mean(jnp.where(d < 0, 1.0 - cfg.expectile, cfg.expectile) * d ** 2)
+
+        v_next = jax.lax.stop_gradient(
+            self.value_net.apply(params["value"], observe(problem, b.s_next, b.g))[:, 0])
+        y = b.r + cfg.gamma * mask_of(b) * v_next
+        q = apply_ensemble(self.critic_net, params["critic"], xa)[..., 0]  # [2, B]
+        critic_loss = jnp.sum(jnp.mean((q - y) ** 2, axis=1))
+
+        adv = q_t - jax.lax.stop_gradient(v)
+        weight = jnp.minimum(jnp.exp(cfg.temperature * adv), cfg.max_weight)
+        log_prob = log_likelihood(problem, self.pi(params["actor"], b.s, b.g), b.a)
+        actor_loss = -jnp.mean(weight * log_prob)
+        metrics = {"value_loss": value_loss, "critic_loss": critic_loss,
+                   "actor_loss": actor_loss, "q_mean": jnp.mean(q_t),
+                   "adv_std": jnp.std(adv), "weight_mean": jnp.mean(weight)}
+        return value_loss + critic_loss + actor_loss, metrics
+
+    def update(self, model, batch, key, step):
+        grads, metrics = jax.grad(self.loss, has_aux=True)(model["params"],
+                                                           model["target_critic"], batch)
+        updates, opt = self.optimizer.update(grads, model["opt"], model["params"])
+        params = optax.apply_updates(model["params"], updates)
+        target = polyak(model["target_critic"], params["critic"], self.config.tau)
+        return {"params": params, "target_critic": target, "opt": opt}, metrics
+
+    def actions(self, model, s, g):
+        return self.pi(model["params"]["actor"], s, g)
+
+
+def make(config: IQLConfig | None = None, problem: Problem | None = None,
+         progress=None) -> IQL:
+    """The IQL agent (``config`` None: the defaults)."""
+    return IQL(config, problem, progress)

@@ -1,0 +1,147 @@
+"""Lazy Q (Schubert & Toussaint, 2020): an eagerly learned V(s, g) and a lazily fitted local
+action value model Q(s, a, g) ~ alpha + beta.a (Eq. 4), behind the agent interface.
+
+* ``prepare`` (host side, per seed): the neighbourhoods B(s, g) of §V-A-2 of every
+  transition (:func:`lazyq_jax.neighbours.find_neighbours`; for 2-D states with angle
+  goals the grid over the task's fixed bounds, so that seeds share compiled passes);
+  they depend on the data only, so they are found once (``train.resample_neighbours``:
+  a fresh k-subset every cycle).
+* ``run_block``: one cycle of fitted value iteration (:func:`lazyq_jax.train.make_train`):
+  targets of Eq. (11) (or Eq. 13 with ``train.double_dqn``) from the network frozen at
+  the start of the cycle, then ``train.epochs`` epochs of Adam on Eq. (10).
+* ``act``: Eq. (9), the greedy action of the local fit over the dataset
+  (:func:`lazyq_jax.policy.lazy_policy`); no neighbourhood within
+  ``neighbours.max_level`` growths gives the zero action.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh
+
+from lazyq_jax.agents.base import Agent, Problem, stack_trees
+from lazyq_jax.config import NeighbourConfig, TrainConfig
+from lazyq_jax.keys import purpose_key
+from lazyq_jax.neighbours import build_index, find_neighbours, is_grid_space, search_all
+from lazyq_jax.parallel import over_seeds
+from lazyq_jax.policy import LazyPolicy, lazy_policy, policy_index
+from lazyq_jax.targets import bootstrap_table
+from lazyq_jax.train import make_train
+from lazyq_jax.types import Transitions
+
+
+@dataclasses.dataclass(frozen=True)
+class LazyConfig:
+    """Lazy Q's settings: the ``train`` and ``neighbours`` sections of a run config."""
+
+    train: TrainConfig = TrainConfig()
+    neighbours: NeighbourConfig = NeighbourConfig()
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass
+class Neighbourhoods:
+    """``idx [N, k]`` of every transition's neighbourhood and its growth ``level [N]``."""
+
+    idx: jax.Array
+    level: jax.Array
+
+
+class LazyAgent(Agent):
+    """Lazy Q (see the module docstring).  ``mesh``: data-parallel training and search over
+    its devices (one seed at a time; see :func:`lazyq_jax.train.make_train`)."""
+
+    name = "lazy"
+
+    def __init__(self, config: LazyConfig, problem: Problem, *, mesh: Mesh | None = None):
+        if not isinstance(config, LazyConfig):
+            raise TypeError(f"lazy Q needs a LazyConfig (or None), got {type(config).__name__}")
+        self.config, self.problem, self.mesh = config, problem, mesh
+        self.blocks = config.train.cycles
+        self.trainer = make_train(config.train, problem.action_length, action_set=problem.action_set,
+                                  state_scale=problem.state_scale, probes=problem.probes, mesh=mesh)
+
+    # --- training
+    def init(self, key, data: Transitions):
+        return self.trainer.init(key, data)
+
+    def refresh(self, block: int) -> bool:
+        return self.config.train.resample_neighbours
+
+    def prepare(self, seed: int, data: Transitions, n_valid: int, block: int) -> Neighbourhoods:
+        """The neighbourhoods of the first ``n_valid`` rows of ``data`` (rows past it: 0).
+        Block 0 draws them with the seed's ``neighbours`` key; with
+        ``resample_neighbours`` block ``b > 0`` draws a fresh sample with its own key."""
+        key = purpose_key(seed, "neighbours")
+        if self.config.train.resample_neighbours and block > 0:
+            key = jax.random.fold_in(purpose_key(seed, "resample"), block)
+        nc, n = self.config.neighbours, int(n_valid)
+        if is_grid_space(data.s, data.g):
+            index = build_index(np.asarray(data.s[:n]), np.asarray(data.g[:n]), k=nc.k,
+                                radius_s=nc.radius_s, radius_g=nc.radius_g, growth=nc.growth,
+                                max_level=0, capacity=data.size, bounds=self.problem.search_bounds)
+            nb = search_all(index, key, data.s, data.g, mesh=self.mesh, n_queries=n)
+            return Neighbourhoods(nb.idx, nb.level)
+        g = None if data.g is None else data.g[:n]
+        nb = find_neighbours(key, data.s[:n], g, data.s[:n], g, k=nc.k, radius_s=nc.radius_s,
+                             radius_g=nc.radius_g, growth=nc.growth)
+        pad = data.size - n
+        return Neighbourhoods(jnp.concatenate([nb.idx, jnp.zeros((pad, nc.k), jnp.int32)]),
+                              jnp.concatenate([nb.level, jnp.zeros((pad,), jnp.int32)]))
+
+    def run_block(self, state, data: Transitions, aux: Neighbourhoods, n_valid=None):
+        state, metrics = self.trainer.run_cycle(state, data, aux.idx, n_valid)
+        n = data.r.shape[0] if n_valid is None else n_valid
+        valid = (jnp.arange(data.r.shape[0]) < n).astype(jnp.float32)
+        count = jnp.maximum(jnp.sum(valid), 1.0)
+        metrics["neighbour_level_mean"] = jnp.sum(aux.level * valid) / count
+        metrics["neighbour_level0_fraction"] = jnp.sum((aux.level == 0) * valid) / count
+        return state, metrics
+
+    def train(self, key, data: Transitions, n_valid=None, aux=None):
+        """All cycles in one ``lax.scan`` with the neighbourhoods ``aux`` held fixed (an
+        ``idx [N, k]`` array or :class:`Neighbourhoods`)."""
+        if aux is None:
+            raise ValueError("lazy Q's train needs the neighbourhoods: train(key, data, aux=idx) "
+                             "with idx = find_neighbours(...).idx")
+        idx = aux.idx if isinstance(aux, Neighbourhoods) else aux
+        return self.trainer.train(key, data, idx, n_valid)
+
+    def value_fn(self, state):
+        """``V(s, g)`` of a trained (unstacked) state, in inference mode."""
+        return self.trainer.value_fn(state)
+
+    # --- acting
+    def policies(self, states, data: Transitions, n_valid) -> LazyPolicy:
+        """Each seed's policy over its own dataset (rows ``< n_valid``): the neighbour index
+        (the grids over the same bounds and capacity and window, so they stack), the
+        bootstrapped values ``r + gamma (1 - done) V(s', g)`` of its trained V."""
+        nc, n_seeds = self.config.neighbours, int(np.shape(n_valid)[0])
+        capacity = int(data.r.shape[1])
+        indices = []
+        for i in range(n_seeds):
+            n = int(n_valid[i])
+            g = None if data.g is None else np.asarray(data.g[i, :n])
+            indices.append(policy_index(np.asarray(data.s[i, :n]), g, k=nc.k, radius_s=nc.radius_s,
+                                        radius_g=nc.radius_g, growth=nc.growth,
+                                        max_level=nc.max_level, bounds=self.problem.search_bounds,
+                                        capacity=capacity))
+        if hasattr(indices[0], "max_window"):  # grids: one window for all seeds
+            window = max(index.max_window for index in indices)
+            indices = [index.replace(max_window=window) for index in indices]
+        gamma = self.config.train.gamma
+        values = over_seeds(lambda st, d: bootstrap_table(self.trainer.value_fn(st), d, gamma),
+                            n_seeds)(states, data)
+        length = jnp.full(n_seeds, self.problem.action_length, jnp.float32)
+        return LazyPolicy(stack_trees(indices), data.a, values, length, self.problem.action_set)
+
+    def act(self, policy: LazyPolicy):
+        return lambda key, s, g: lazy_policy(policy, key, s, g)[0]
+
+
+def make(config: LazyConfig | None, problem: Problem, *, mesh: Mesh | None = None) -> LazyAgent:
+    return LazyAgent(LazyConfig() if config is None else config, problem, mesh=mesh)
+

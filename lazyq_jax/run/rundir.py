@@ -1,0 +1,187 @@
+"""A run directory: its layout, its guard against mixing runs, and the method specs.
+
+Layout (one seed or many, one method or many: a single run is a study of one seed)::
+
+    run.json                      task, config, seeds (a resume must match them)
+    data/<seed>/dataset.npz       each seed's static dataset (+ summary.json);
+    data/<seed>/round_<r>.npz     the moves online round r added (online runs)
+    <method>/method.json          the agent, its config and budget (a resume must match)
+    <method>/checkpoints/<block>/ the seeds' training states, stacked (orbax)
+    <method>/metrics.jsonl        per block: every metric as a list over the seeds
+    <method>/rounds.jsonl         online runs: per round, moves, pushes, a quick protocol A
+    <method>/eval.json            per seed: the task's evaluation
+    <method>/timings.json         seconds per phase
+    results.json, summary.md      per seed and mean with 95 % CI (:mod:`lazyq_jax.stats`)
+    figures/                      comparisons; figures/<method>/: the task's figures and a GIF
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+import shutil
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from lazyq_jax.agents import METHODS
+from lazyq_jax.config import Config, ConfigError, to_dict
+from lazyq_jax.parallel import barrier, is_main_process
+
+RUN_VERSION = 2  # 2: one runner for every task, agent and data source
+
+
+class RunDirError(ValueError):
+    """The run directory holds another run that this call would mix with or overwrite."""
+
+
+def write_json(path: Path, data: Any, indent: int | None = 1) -> None:
+    """Write JSON (process 0 only; the others return)."""
+    if is_main_process():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(data, indent=indent))
+
+
+def append_jsonl(path: Path, record: dict) -> None:
+    if is_main_process():
+        with path.open("a") as f:
+            f.write(json.dumps(record) + "\n")
+
+
+def read_jsonl(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines() if line] if path.exists() else []
+
+
+def keep_jsonl(path: Path, keep) -> None:
+    """Keep the lines of ``path`` whose record ``keep(record)`` accepts (e.g. on resume)."""
+    if is_main_process() and path.exists():
+        path.write_text("".join(json.dumps(r) + "\n" for r in read_jsonl(path) if keep(r)))
+
+
+# ----------------------------------------------------------------------------- methods
+
+
+@dataclasses.dataclass(frozen=True)
+class MethodSpec:
+    """``"iql:temperature=10:budget=4"``: an agent name, overrides of its config fields
+    and (baselines) ``budget``, a multiple of lazy Q's gradient steps."""
+
+    text: str
+    name: str
+    options: tuple[tuple[str, str], ...]
+
+    @property
+    def dirname(self) -> str:
+        return re.sub(r"[^A-Za-z0-9_.=-]", "_", self.text.replace(":", "_"))
+
+
+def parse_method(text: str) -> MethodSpec:
+    name, *parts = text.strip().split(":")
+    if name not in METHODS:
+        raise ConfigError(f"unknown method {name!r} in {text!r}; known methods: {', '.join(METHODS)}")
+    options = []
+    for part in parts:
+        if "=" not in part:
+            raise ConfigError(f"method option {part!r} in {text!r} must look like field=value")
+        key, value = part.split("=", 1)
+        options.append((key.strip(), value.strip()))
+    if options and name in ("lazy", "random", "scripted"):
+        raise ConfigError(f"{text!r}: {name} takes no options (set lazy Q's with --set)")
+    return MethodSpec(text.strip(), name, tuple(options))
+
+
+def check_methods(methods: Sequence[str]) -> tuple[MethodSpec, ...]:
+    specs = tuple(parse_method(m) for m in methods if m.strip())
+    if not specs:
+        raise ConfigError(f"a run needs at least one method; choose from {', '.join(METHODS)}")
+    if len({s.text for s in specs}) != len(specs):
+        raise ConfigError(f"methods must be distinct, got {[s.text for s in specs]}")
+    return specs
+
+
+def check_seeds(seeds: Sequence[int]) -> tuple[int, ...]:
+    seeds = tuple(seeds)
+    if not seeds:
+        raise ConfigError("a run needs at least one seed (--seeds N)")
+    if any(not isinstance(s, (int, np.integer)) or isinstance(s, bool) or s < 0 for s in seeds):
+        raise ConfigError(f"seeds must be integers >= 0, got {list(seeds)}")
+    if len(set(seeds)) != len(seeds):
+        raise ConfigError(f"seeds must be distinct, got {list(seeds)}")
+    return tuple(int(s) for s in seeds)
+
+
+# ----------------------------------------------------------------------------- the guard
+
+
+def config_diff(a: Any, b: Any, prefix: str = "") -> list[str]:
+    """The dotted names of the fields where two config dicts differ."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return [d for key in sorted(set(a) | set(b))
+                for d in config_diff(a.get(key), b.get(key), f"{prefix}{key}.")]
+    return [] if a == b else [prefix.rstrip(".")]
+
+
+# A resume may change these: the evaluation, the devices, and more training cycles.
+_MAY_CHANGE = ("eval", "parallel", "train.cycles")
+
+
+def open_run(run_dir: Path, config: Config, seeds: Sequence[int], *, resume: bool,
+             overwrite: bool) -> None:
+    """Check ``run_dir`` before anything in it is touched, then record this run.
+
+    A directory holding a run is refused unless ``resume`` (same task, seeds and config,
+    up to the evaluation settings, the devices and a larger ``train.cycles``) or
+    ``overwrite`` (its contents are deleted first; it wins over ``resume``).
+    """
+    path = run_dir / "run.json"
+    record = {"version": RUN_VERSION, "task": config.task, "seeds": list(seeds),
+              "config": to_dict(config)}
+    if path.exists() or (run_dir / "study.json").exists() or (run_dir / "checkpoints").exists():
+        if overwrite:
+            if is_main_process():
+                for child in run_dir.iterdir():
+                    shutil.rmtree(child) if child.is_dir() else child.unlink()
+            barrier("overwrite")
+        elif not path.exists():
+            raise RunDirError(f"{run_dir} holds a run of an older lazyq-jax; pass --overwrite to "
+                              "replace it or pick another --run-dir")
+        else:
+            stored = json.loads(path.read_text())
+            if stored.get("task") != config.task:
+                raise RunDirError(f"{run_dir} holds a run of task {stored.get('task')!r}, not "
+                                  f"{config.task!r}; pick another --run-dir (or --overwrite)")
+            if not resume:
+                raise RunDirError(f"{run_dir} already holds a run; continue it with --resume, "
+                                  "replace it with --overwrite, or pick another --run-dir")
+            if stored.get("version") != RUN_VERSION:
+                raise RunDirError(f"{run_dir} holds a run of another lazyq-jax (version "
+                                  f"{stored.get('version')}); pass --overwrite to replace it")
+            if stored.get("seeds") != list(seeds):
+                raise RunDirError(f"{run_dir} holds a run of seeds {stored.get('seeds')}, not "
+                                  f"{list(seeds)}; resume it with those, or use another --run-dir")
+            old = stored.get("config", {})
+            differ = [f for f in config_diff(old, record["config"])
+                      if not any(f == m or f.startswith(m + ".") for m in _MAY_CHANGE)]
+            if differ:
+                raise RunDirError(f"{run_dir} holds a run with other settings ({', '.join(differ)}); "
+                                  "resume it with its own settings, or use --overwrite")
+            if old.get("train", {}).get("cycles", 0) > config.train.cycles:
+                raise RunDirError(f"{run_dir} was trained for {old['train']['cycles']} cycles; a resume "
+                                  f"may add cycles, not remove them (train.cycles={config.train.cycles})")
+    if is_main_process():
+        run_dir.mkdir(parents=True, exist_ok=True)
+    write_json(path, record)
+
+
+def open_method(method_dir: Path, record: dict) -> None:
+    """Refuse a method directory trained with other settings; record this method's."""
+    path = method_dir / "method.json"
+    if path.exists():
+        stored = json.loads(path.read_text())
+        if stored != record:
+            differ = config_diff(stored, record)
+            raise RunDirError(f"{method_dir} holds {stored.get('method')} trained with other settings "
+                              f"({', '.join(differ)}); pass --overwrite or pick another --run-dir")
+    write_json(path, record)

@@ -1,0 +1,204 @@
+"""Where a run's data come from: the task's static dataset of every seed, and online rounds
+that grow it with the agent's own episodes.
+
+Both give the runner the seeds' datasets padded to one length and stacked
+(:class:`SeedData`), so that every phase is one program over all seeds.  The online
+source pads to the largest size the rounds may reach from the start, so that the
+shapes, hence the compiled programs, never change during a run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh
+from tqdm.auto import tqdm
+
+from lazyq_jax.config import Config, ConfigError, to_dict
+from lazyq_jax.data import DatasetError, episodes_to_transitions, load_dataset, save_dataset
+from lazyq_jax.keys import purpose_key
+from lazyq_jax.parallel import is_main_process
+from lazyq_jax.run.rundir import write_json
+from lazyq_jax.tasks import Task
+from lazyq_jax.types import Transitions, pad_transitions
+
+
+def log(msg: str) -> None:
+    tqdm.write(msg)
+
+
+@dataclasses.dataclass
+class SeedData:
+    """The seeds' datasets: ``stacked`` (leaves ``[S, capacity, ...]``, padded) with each
+    seed's valid rows ``n_valid [S]``, and their summaries."""
+
+    seeds: tuple[int, ...]
+    stacked: Transitions
+    n_valid: np.ndarray
+    summaries: list[dict]
+
+    @property
+    def capacity(self) -> int:
+        return int(self.stacked.r.shape[1])
+
+    def seed_data(self, i: int) -> Transitions:
+        """Seed ``i``'s valid rows (unpadded)."""
+        return jax.tree.map(lambda x: x[i, : int(self.n_valid[i])], self.stacked)
+
+
+def dataset_meta(config: Config, seed: int) -> dict:
+    """What a seed's static dataset is made from: a cached file must match it."""
+    return {"task": config.task, "collect": to_dict(config.collect), "seed": int(seed)}
+
+
+def seed_dataset(task: Task, config: Config, run_dir: Path, seed: int, *, mesh: Mesh | None = None,
+                 progress: bool = True) -> tuple[Transitions, dict]:
+    """``data/<seed>/dataset.npz`` if it holds this task's data of this config and seed, else
+    collected (with the seed's ``collect`` key) and saved there; and its summary."""
+    path = run_dir / "data" / str(seed) / "dataset.npz"
+    meta = dataset_meta(config, seed)
+    if path.exists():
+        try:
+            data, stored = load_dataset(path)
+            if stored == meta:
+                return data, task.data_summary(data, config)
+            log(f"data: {path} holds other data; collecting anew")
+        except DatasetError as e:
+            log(f"data: ignoring an unusable {path} ({e}); collecting anew")
+    t = time.perf_counter()
+    data = task.collect(purpose_key(seed, "collect"), config, mesh=mesh, progress=progress)
+    summary = task.data_summary(data, config)
+    if is_main_process():
+        save_dataset(path, data, meta)
+        write_json(path.parent / "summary.json", summary)
+    log(f"data: seed {seed}: {data.size:,} rows ({time.perf_counter() - t:.1f} s) -> {path}")
+    return data, summary
+
+
+def static_data(task: Task, config: Config, run_dir: Path, seeds: Sequence[int], *,
+                capacity: int | None = None, mesh: Mesh | None = None, progress: bool = True
+                ) -> SeedData:
+    """Every seed's static dataset (collected or reused; the collection compiles once), padded
+    to the longest (or ``capacity``) and stacked."""
+    datasets, summaries = [], []
+    for seed in tqdm(seeds, desc="data (seeds)", disable=not progress or len(seeds) == 1, leave=False):
+        data, summary = seed_dataset(task, config, run_dir, seed, mesh=mesh, progress=progress)
+        datasets.append(data)
+        summaries.append(summary)
+    n_max = max(d.size for d in datasets) if capacity is None else capacity
+    if n_max < max(d.size for d in datasets):
+        raise ConfigError(f"a dataset of {max(d.size for d in datasets)} rows exceeds the capacity "
+                          f"{n_max}")
+    stacked = jax.tree.map(lambda *x: jnp.stack(x), *[pad_transitions(d, n_max) for d in datasets])
+    return SeedData(tuple(seeds), stacked, np.array([d.size for d in datasets], np.int32), summaries)
+
+
+# ----------------------------------------------------------------------------- online rounds
+
+
+class OnlineRounds:
+    """The online data source (``config.online.rounds > 0``): round 0 is the static dataset
+    trained for ``train.cycles`` blocks; before block ``train.cycles + (r - 1) *
+    online.cycles`` round ``r`` rolls out the current policy of every seed (one vmapped
+    program), relabels and appends its moves (at most the round's quota of moves per
+    seed); every round ends with the task's quick evaluation, recorded in
+    ``<method>/rounds.jsonl``.
+
+    Arrays have a fixed capacity (``online.max_moves`` moves' rows) from round 0 on, and
+    the neighbour grids fixed bounds (the task's), so nothing recompiles between rounds.
+    """
+
+    def __init__(self, task: Task, config: Config, run_dir: Path):
+        o = config.online
+        self.task, self.config, self.run_dir = task, config, run_dir
+        self.per_move = task.rows_per_move(config)
+        self.capacity = o.max_moves * self.per_move
+        self.first = config.train.cycles
+
+    def total_blocks(self) -> int:
+        return self.first + self.config.online.rounds * self.config.online.cycles
+
+    def round_end(self, r: int) -> int:
+        """The block count at the end of round ``r``."""
+        return self.first + r * self.config.online.cycles
+
+    def round_starting(self, block: int) -> int | None:
+        """The round whose data must be added before ``block`` runs, if any."""
+        extra = block - self.first
+        oc = self.config.online.cycles
+        if extra >= 0 and extra % oc == 0 and extra // oc < self.config.online.rounds:
+            return extra // oc + 1
+        return None
+
+    def rounds_with_data(self, block: int) -> int:
+        """Rounds whose data a checkpoint after ``block`` blocks was trained on."""
+        if block <= self.first:
+            return 0
+        return min(self.config.online.rounds, -(-(block - self.first) // self.config.online.cycles))
+
+    def quota(self, round0_moves: int) -> int:
+        o = self.config.online
+        return max(0, (o.max_moves - round0_moves) // o.rounds)
+
+    def check(self, sd: SeedData) -> None:
+        moves = int(np.max(sd.n_valid)) // self.per_move
+        if moves >= self.config.online.max_moves:
+            raise ConfigError(f"online.max_moves={self.config.online.max_moves} leaves no moves for the "
+                              f"online rounds: round 0 already holds {moves}; raise online.max_moves "
+                              "or collect less data")
+
+    def path(self, seed: int, r: int) -> Path:
+        return self.run_dir / "data" / str(seed) / f"round_{r}.npz"
+
+    def load(self, sd: SeedData, rounds: int) -> SeedData:
+        """``sd`` (round 0) with the saved moves of rounds ``1..rounds`` appended."""
+        for r in range(1, rounds + 1):
+            parts = []
+            for seed in sd.seeds:
+                part, meta = load_dataset(self.path(seed, r))
+                if meta.get("seed") != seed or meta.get("round") != r:
+                    raise DatasetError(f"{self.path(seed, r)} is not round {r} of seed {seed}")
+                parts.append(part)
+            sd = self.append(sd, parts)
+        return sd
+
+    def append(self, sd: SeedData, parts: Sequence[Transitions]) -> SeedData:
+        stacked, n_valid = sd.stacked, sd.n_valid.copy()
+        for i, part in enumerate(parts):
+            end = int(n_valid[i]) + part.size
+            if end > self.capacity:
+                raise AssertionError(f"internal error: {end} rows exceed the capacity {self.capacity}")
+            stacked = jax.tree.map(lambda x, y, i=i, n=int(n_valid[i]): x.at[i, n:n + y.shape[0]].set(y),
+                                   stacked, part)
+            n_valid[i] = end
+        return dataclasses.replace(sd, stacked=stacked, n_valid=n_valid)
+
+    def collect(self, explore, policies, sd: SeedData, r: int, round0_rows: np.ndarray
+                ) -> tuple[SeedData, dict]:
+        """Round ``r`` for every seed: ``explore(policies, keys)`` (the task's rollouts of the
+        stacked policies, one program), its moves relabelled, cut to the quota, saved to
+        ``data/<seed>/round_<r>.npz`` and appended.  Returns the grown data and the
+        round's counts per seed."""
+        keys = jnp.stack([jax.random.fold_in(purpose_key(s, "online"), r) for s in sd.seeds])
+        eps = jax.device_get(explore(policies, keys))
+        counts = {k: np.asarray(v).tolist() for k, v in eps.pop("counts").items()}
+        parts, kept, simulated = [], [], []
+        for i, seed in enumerate(sd.seeds):
+            new = episodes_to_transitions(jax.tree.map(lambda x: x[i], eps), self.per_move)
+            moves = new.size // self.per_move
+            quota = self.quota(int(round0_rows[i]) // self.per_move)
+            if moves > quota:  # the budget: the first `quota` moves in (episode, step) order
+                new = jax.tree.map(lambda x: x[: quota * self.per_move], new)
+            if is_main_process():
+                save_dataset(self.path(seed, r), new, {"seed": seed, "round": r})
+            parts.append(new)
+            simulated.append(moves)
+            kept.append(min(moves, quota))
+        counts.update(moves_simulated=simulated, moves_kept=kept)
+        return self.append(sd, parts), counts

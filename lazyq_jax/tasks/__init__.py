@@ -1,0 +1,44 @@
+"""The task registry: ``name -> Task`` (:class:`lazyq_jax.tasks.base.Task`).
+
+A new task is one folder beside ``push/`` and ``arm/`` with a :class:`Task` subclass, and
+one line in :data:`TASKS` below (see docs/design.md, "Adding a task").
+"""
+
+from __future__ import annotations
+
+from lazyq_jax.config import Config, ConfigError, from_dict
+from lazyq_jax.tasks.arm import ArmTask
+from lazyq_jax.tasks.base import Task
+from lazyq_jax.tasks.push import PushTask
+
+TASKS: dict[str, Task] = {
+    "push": PushTask(),
+    "arm": ArmTask("arm", disk_range=None),
+    "arm-long": ArmTask("arm-long", disk_range=0.4),
+}
+
+
+def get(name: str) -> Task:
+    """The task called ``name`` (:class:`ConfigError` listing the known ones otherwise)."""
+    if name not in TASKS:
+        raise ConfigError(f"unknown task {name!r}; known tasks: {', '.join(TASKS)}")
+    return TASKS[name]
+
+
+def preset(task: str = "push", name: str = "paper") -> Config:
+    """The run config of ``task``'s preset ``name`` (``paper`` is every task's default)."""
+    presets = get(task).presets
+    if name not in presets:
+        raise ConfigError(f"task {task!r} has no preset {name!r}; its presets: {', '.join(presets)}")
+    return presets[name]
+
+
+def config_from_dict(data: dict) -> Config:
+    """A :class:`Config` from its JSON form (the task's sections by the task's classes)."""
+    if not isinstance(data, dict) or "task" not in data:
+        raise ConfigError("a stored config must be a dict with a 'task' field")
+    task = get(data["task"])
+    return from_dict(Config, data, sections={"collect": task.collect_config, "eval": task.eval_config})
+
+
+__all__ = ["TASKS", "Task", "config_from_dict", "get", "preset"]
