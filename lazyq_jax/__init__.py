@@ -30,7 +30,7 @@ from lazyq_jax.neighbours import (GridIndex, Neighbours, build_index, check_foun
 from lazyq_jax.networks import ValueNetwork
 from lazyq_jax.parallel import make_mesh
 from lazyq_jax.policy import LazyPolicy, lazy_policy, make_lazy_policy
-from lazyq_jax.run import RunDirError, evaluate_run, load_policy, run
+from lazyq_jax.run import RunDirError, evaluate_run, load_policy, load_run, run
 from lazyq_jax.stats import t_interval
 from lazyq_jax.targets import (TargetDiagnostics, bootstrap_table, bootstrap_values, dataset_targets,
                                double_dqn_target, evaluate_in_batches, lazy_target, local_fits)
@@ -53,7 +53,7 @@ __all__ = [
     "bootstrap_values", "build_index", "check_found", "collect", "collect_arm", "dataset_summary",
     "dataset_targets", "double_dqn_target", "evaluate_in_batches", "evaluate_run",
     "find_neighbours", "fit_local_linear", "greedy_action", "lazy_policy", "lazy_target",
-    "load_checkpoint", "load_dataset", "load_latest_intact", "load_policy", "local_fits",
+    "load_checkpoint", "load_dataset", "load_latest_intact", "load_policy", "load_run", "local_fits",
     "make_lazy_policy", "make_mesh", "make_train", "max_linear", "override", "pad_transitions",
     "precompute_projection", "preset", "push_reward", "query_neighbours", "run", "safe_norm",
     "save_checkpoint", "save_dataset", "search_all", "t_interval", "tasks",

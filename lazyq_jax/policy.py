@@ -10,8 +10,8 @@ import numpy as np
 from flax import struct
 
 from lazyq_jax.local_model import fit_local_linear, greedy_action
-from lazyq_jax.neighbours import (GridIndex, ScanIndex, build_index, build_scan_index, is_grid_space,
-                                  query_neighbours, query_neighbours_scan)
+from lazyq_jax.neighbours import GridIndex, build_index, is_grid_space, query_neighbours
+from lazyq_jax.neighbours.query import PolicyIndex, build_policy_index, query_policy, stack_policy_indices
 from lazyq_jax.targets import bootstrap_table
 from lazyq_jax.types import Transitions
 
@@ -21,7 +21,7 @@ class LazyPolicy:
     """Everything the policy reads: a pytree, so it can be passed into ``jit`` (and stacked
     over seeds for ``vmap``)."""
 
-    index: GridIndex | ScanIndex  # the grid (2-D states, angle goals), else a scan
+    index: GridIndex | PolicyIndex  # the 2-D grid (states [N, 2], angle goals), else the general one
     actions: jax.Array  # [N, n_a] the dataset's actions a_j
     values: jax.Array  # [N] y_j = r_j + gamma (1 - done_j) V(s'_j, g_j), from the trained V
     action_length: jax.Array  # c (a float32 scalar)
@@ -29,23 +29,28 @@ class LazyPolicy:
 
 
 def policy_index(data_s, data_g, *, k: int, radius_s: float, radius_g: float, growth: float,
-                 max_level: int, bounds=None, capacity: int | None = None):
-    """The policy's neighbour index over a dataset (its first ``len(data_s)`` rows): the grid
-    for 2-D states with angle goals (``bounds``/``capacity`` as in
-    :func:`lazyq_jax.neighbours.build_index`), else the scan (rows up to ``capacity``
-    padded with points no query reaches)."""
+                 max_level: int, n_valid: int | None = None, bounds=None):
+    """The policy's neighbour index over a dataset whose rows ``>= n_valid`` are padding: the
+    grid for 2-D states with angle goals (``bounds`` as in
+    :func:`lazyq_jax.neighbours.build_index`), else the general bounded query
+    (:func:`lazyq_jax.neighbours.query.build_policy_index`)."""
+    n = np.shape(data_s)[0] if n_valid is None else int(n_valid)
     if is_grid_space(data_s, data_g):
-        return build_index(data_s, data_g, k=k, radius_s=radius_s, radius_g=radius_g, growth=growth,
-                           max_level=max_level, bounds=bounds, capacity=capacity)
-    s = np.asarray(data_s, np.float32)
-    g = None if data_g is None else np.asarray(data_g, np.float32)
-    pad = (capacity or s.shape[0]) - s.shape[0]
-    if pad:  # far away in state space: never inside a ball within max_level growths
-        far = np.float32(1e6 * radius_s * growth ** max_level)
-        s = np.concatenate([s, np.full((pad, s.shape[1]), far, np.float32)])
-        g = None if g is None else np.concatenate([g, np.zeros((pad, *g.shape[1:]), np.float32)])
-    return build_scan_index(s, g, k=k, radius_s=radius_s, radius_g=radius_g, growth=growth,
-                            max_level=max_level)
+        return build_index(np.asarray(data_s)[:n], np.asarray(data_g)[:n], k=k, radius_s=radius_s,
+                           radius_g=radius_g, growth=growth, max_level=max_level, bounds=bounds,
+                           capacity=np.shape(data_s)[0])
+    return build_policy_index(data_s, data_g, k=k, radius_s=radius_s, radius_g=radius_g,
+                              growth=growth, max_level=max_level, n_valid=n)
+
+
+def stack_indices(indices: list) -> GridIndex | PolicyIndex:
+    """Several datasets' policy indices (one per seed, equal row counts) as one, stacked on a
+    leading axis for ``jax.vmap``: the grids get one search window, the general indices one
+    layout and the largest capacities."""
+    if isinstance(indices[0], PolicyIndex):
+        return stack_policy_indices(indices)
+    window = max(index.max_window for index in indices)
+    return jax.tree.map(lambda *x: jnp.stack(x), *[i.replace(max_window=window) for i in indices])
 
 
 def make_lazy_policy(value_fn: Callable, data: Transitions, *, gamma: float, action_length: float,
@@ -58,7 +63,7 @@ def make_lazy_policy(value_fn: Callable, data: Transitions, *, gamma: float, act
     the growths a policy query may use (see :func:`lazy_policy`); ``bounds``: the
     grid's bounds (see :func:`lazyq_jax.build_index`; default: the data's).  States
     ``[N, 2]`` with angle goals ``[N]`` get the grid index; any other space
-    (``[N, d_s]``, goals ``[N, d_g]`` or ``None``) a scan of the data per query
+    (``[N, d_s]``, goals ``[N, d_g]`` or ``None``) the general bounded per-step query
     (:mod:`lazyq_jax.neighbours.query`).
     """
     index = policy_index(data.s, data.g, k=k, radius_s=radius_s, radius_g=radius_g, growth=growth,
@@ -79,8 +84,8 @@ def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):
 
     Returns ``(actions[B, n_a], beta[B, n_a], found[B])``.
     """
-    if isinstance(policy.index, ScanIndex):
-        nb = query_neighbours_scan(policy.index, key, s, g)
+    if isinstance(policy.index, PolicyIndex):
+        nb = query_policy(policy.index, key, s, g)
     else:
         nb = query_neighbours(policy.index, key, s, g)
     rows = jnp.maximum(nb.idx, 0)

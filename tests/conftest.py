@@ -8,9 +8,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from lazyq_jax.config import (FORGIVING_PUSH, CollectConfig, Config, EvalConfig, PushConfig,
-                              TrainConfig)
-from lazyq_jax.env import PushEnv
+from lazyq_jax.run import run
+from lazyq_jax.config import Config, TrainConfig
+from lazyq_jax.tasks.push import FORGIVING_PUSH, CollectConfig, EvalConfig, PushConfig, PushEnv
 
 PUSH_BATCH = 16
 
@@ -53,6 +53,7 @@ def push_forgiving():
 
 # A small but real push run: dense data near the disk so a few cycles propagate value.
 PUSH = Config(
+    task="push",
     seed=1,
     collect=CollectConfig(n_starts=1200, n_goals=24, start_range=0.6, chunk_size=1200),
     train=TrainConfig(cycles=4, epochs=3, batch_size=512, width=64, target_batch_size=16384),
@@ -63,9 +64,8 @@ PUSH = Config(
 
 @pytest.fixture(scope="session")
 def push_run(tmp_path_factory):
-    """``(run_dir, state, trainer, data)`` of :data:`PUSH`, trained once per session."""
-    from lazyq_jax.pipeline import fit
-
+    """The run directory of :data:`PUSH` (one seed, lazy Q), trained and evaluated once per
+    session (per worker)."""
     run_dir = tmp_path_factory.mktemp("push_run")
-    state, trainer, data = fit(PUSH, run_dir, progress=False)
-    return run_dir, state, trainer, data
+    run(PUSH, run_dir, progress=False)
+    return run_dir

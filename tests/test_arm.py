@@ -9,8 +9,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from lazyq_jax.config import ConfigError, PushConfig
-from lazyq_jax.env.arm import (
+from lazyq_jax.config import ConfigError
+from lazyq_jax.tasks.arm.env import (
     ArmConfig,
     ArmEnv,
     ArmState,
@@ -20,7 +20,12 @@ from lazyq_jax.env.arm import (
     native_arm_push,
     sample_arm_start,
 )
-from lazyq_jax.env.push import load_mj_model, normalize_action
+from lazyq_jax.tasks.arm.config import ArmCollectConfig, ArmEvalConfig
+from lazyq_jax.tasks.arm.episodes import protocol_a
+from lazyq_jax.tasks.base import CORRECT, NOT_PUSHED, WRONG, run_protocol, seed_acts
+from lazyq_jax.tasks.push import PushConfig
+from lazyq_jax.tasks.push.env import load_mj_model, normalize_action
+from lazyq_jax.tasks.push.protocols import summarize_a
 
 BATCH = 16
 CFG = ArmConfig()
@@ -239,38 +244,39 @@ def test_bad_inputs(arm):
             ArmConfig(**bad)
 
 
+def run_one(program, rule, key):
+    """One seed's episodes of ``program`` under a fixed rule ``rule(s, g) -> joint moves``."""
+    rollouts = run_protocol(program, seed_acts(lambda p: lambda k, s, g: rule(s, g)), jnp.zeros(1),
+                            key[None])
+    return jax.tree.map(lambda x: x[0], rollouts)
+
+
 def test_protocol_a_for_the_arm():
     # Starts behind the disk for each goal; a policy that never moves pushes nothing, a
     # policy that always moves joint 1 (the whole arm swings) ends every episode that
     # touches the disk with an outcome the disk's displacement explains.
-    from lazyq_jax.arm_task import arm_protocol_a
-    from lazyq_jax.config import EvalConfig
-    from lazyq_jax.evaluate import CORRECT, NOT_PUSHED, WRONG, summarize_a
-
     env = ArmEnv(CFG)  # float32, as evaluations run
-    cfg = EvalConfig(n_directions=4, episodes_per_direction=3, max_steps=6)
-    still = lambda key, q, g: (jnp.zeros_like(q), jnp.ones(q.shape[0], bool))
-    ro, q = arm_protocol_a(env, still, jax.random.PRNGKey(0), cfg)
-    np.testing.assert_allclose(np.asarray(ro.finger), np.asarray(fingertip_xy(q, CFG)), atol=1e-6)
+    cfg = ArmEvalConfig(n_directions=4, episodes_per_direction=3, max_steps=6)
+    program = protocol_a(env, cfg, ArmCollectConfig())
+    ro = run_one(program, lambda q, g: jnp.zeros_like(q), jax.random.PRNGKey(0))
+    np.testing.assert_allclose(ro.agent, np.asarray(fingertip_xy(jnp.asarray(ro.extra), CFG)), atol=1e-6)
     goals = np.repeat(np.arange(4) * np.pi / 2, 3)
-    tip0 = np.asarray(ro.finger[0])
+    tip0 = ro.agent[0]
     assert (tip0 @ np.stack([np.cos(goals), np.sin(goals)]) < 0).diagonal().all()  # behind
     assert (np.linalg.norm(tip0, axis=1) > env.config.contact_distance).all()
-    assert (np.asarray(ro.outcome) == NOT_PUSHED).all() and (np.asarray(ro.steps) == 6).all()
-    np.testing.assert_allclose(np.asarray(ro.disk), 0.0)
+    assert (ro.outcome == NOT_PUSHED).all() and (ro.steps == 6).all() and (ro.idle == 6).all()
+    np.testing.assert_allclose(ro.obj, 0.0)
 
-    swing = lambda key, q, g: (jnp.tile(jnp.array([1.0, 0.0, 0.0]), (q.shape[0], 1)),
-                               jnp.ones(q.shape[0], bool))
-    ro, _ = arm_protocol_a(env, swing, jax.random.PRNGKey(0), cfg)
-    outcome, disk = np.asarray(ro.outcome), np.asarray(ro.disk)
-    moved = outcome != NOT_PUSHED
-    final = disk[-1]  # frozen after the push that ended the episode (plus sub-threshold nudges)
+    ro = run_one(program, lambda q, g: jnp.tile(jnp.array([1.0, 0.0, 0.0]), (q.shape[0], 1)),
+                 jax.random.PRNGKey(0))
+    moved = ro.outcome != NOT_PUSHED
+    final = ro.obj[-1]  # frozen after the push that ended the episode (plus sub-threshold nudges)
     assert moved.any()
     cos = (final @ np.stack([np.cos(goals), np.sin(goals)])).diagonal() / np.maximum(
         np.linalg.norm(final, axis=1), 1e-12)
-    agree = (cos >= 0.9) == (outcome == CORRECT)
-    assert (agree | (np.abs(cos - 0.9) < 0.05))[moved].all(), (cos, outcome)
+    agree = (cos >= 0.9) == (ro.outcome == CORRECT)
+    assert (agree | (np.abs(cos - 0.9) < 0.05))[moved].all(), (cos, ro.outcome)
     assert (np.linalg.norm(final[~moved], axis=1) < env.config.push.move_threshold).all()
-    assert set(np.unique(outcome)) <= {NOT_PUSHED, CORRECT, WRONG}
-    summary = summarize_a(ro, cfg)
+    assert set(np.unique(ro.outcome)) <= {NOT_PUSHED, CORRECT, WRONG}
+    summary = summarize_a(ro, cfg.n_directions, cfg.episodes_per_direction)
     assert sum(r["correct"] + r["wrong"] + r["not_pushed"] for r in summary["per_goal"]) == goals.size

@@ -7,9 +7,11 @@ import jax
 import numpy as np
 import pytest
 
-from lazyq_jax.config import CollectConfig, ConfigError
-from lazyq_jax.data import DatasetError, collect, dataset_summary, load_dataset, save_dataset
-from lazyq_jax.env import push_reward
+from lazyq_jax.config import ConfigError
+from lazyq_jax.data import DatasetError, load_dataset, save_dataset
+from lazyq_jax.tasks.push import CollectConfig, push_reward
+from lazyq_jax.tasks.push.collect import collect, dataset_summary
+from lazyq_jax.types import Transitions
 
 CFG = CollectConfig(n_starts=96, n_goals=7, chunk_size=48, start_range=0.5)
 
@@ -76,18 +78,30 @@ def test_summary_counts(data):
 
 
 def test_save_load_round_trip(tmp_path, data):
-    path = save_dataset(tmp_path / "d.npz", data, CFG, seed=3)
-    loaded, config, seed = load_dataset(path)
-    assert config == CFG and seed == 3
+    path = save_dataset(tmp_path / "d.npz", data, {"seed": 3, "what": "push"})
+    loaded, meta = load_dataset(path)
+    assert meta == {"seed": 3, "what": "push"}
     for name in ("s", "a", "s_next", "r", "g", "done"):
         np.testing.assert_array_equal(getattr(loaded, name), getattr(data, name))
         assert getattr(loaded, name).dtype == getattr(data, name).dtype
 
 
+@pytest.mark.parametrize("goal", ["vector", "none"])
+def test_round_trip_of_other_goal_kinds(tmp_path, goal):
+    rng = np.random.default_rng(0)
+    n, f = 11, lambda *shape: rng.normal(size=shape).astype(np.float32)
+    g = f(n, 3) if goal == "vector" else None
+    data = Transitions(s=f(n, 5), a=f(n, 3), s_next=f(n, 5), r=f(n), g=g, done=rng.random(n) < 0.3)
+    loaded, _ = load_dataset(save_dataset(tmp_path / "d.npz", data))
+    assert (loaded.g is None) == (goal == "none")
+    for name in ("s", "a", "s_next", "r", "done") + (("g",) if g is not None else ()):
+        np.testing.assert_array_equal(getattr(loaded, name), getattr(data, name))
+
+
 def test_bad_files_give_clear_errors(tmp_path, data):
     with pytest.raises(DatasetError, match="no such dataset"):
         load_dataset(tmp_path / "missing.npz")
-    good = save_dataset(tmp_path / "good.npz", data, CFG, seed=3).read_bytes()
+    good = save_dataset(tmp_path / "good.npz", data, {"seed": 3}).read_bytes()
     (tmp_path / "trunc.npz").write_bytes(good[: len(good) // 2])
     with pytest.raises(DatasetError, match="truncated"):
         load_dataset(tmp_path / "trunc.npz")
@@ -101,18 +115,24 @@ def test_bad_files_give_clear_errors(tmp_path, data):
     def rewrite(name, meta_update=None, arrays_update=None):
         with np.load(tmp_path / "good.npz") as z:
             arrays = {k: z[k] for k in z.files}
-        meta = json.loads(arrays.pop("meta").tobytes())
-        meta.update(meta_update or {})
+        header = json.loads(arrays.pop("header").tobytes())
+        header.update(meta_update or {})
         arrays.update(arrays_update or {})
-        np.savez(tmp_path / name, meta=np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays)
+        np.savez(tmp_path / name, header=np.frombuffer(json.dumps(header).encode(), np.uint8), **arrays)
         return tmp_path / name
 
     with pytest.raises(DatasetError, match="version 99"):
         load_dataset(rewrite("v99.npz", {"version": 99}))
     with pytest.raises(DatasetError, match="'r'"):
         load_dataset(rewrite("shape.npz", arrays_update={"r": np.zeros(5, np.float32)}))
-    with pytest.raises(DatasetError, match="config"):
-        load_dataset(rewrite("cfg.npz", {"config": {"n_starts": -1}}))
+    with pytest.raises(DatasetError, match="'g' is missing"):
+        with np.load(tmp_path / "good.npz") as z:
+            arrays = {k: z[k] for k in z.files if k != "g"}
+        np.savez(tmp_path / "nog.npz", **arrays)
+        load_dataset(tmp_path / "nog.npz")
+    np.savez(tmp_path / "old.npz", meta=np.zeros(3, np.uint8))
+    with pytest.raises(DatasetError, match="older lazyq-jax"):
+        load_dataset(tmp_path / "old.npz")
     assert zipfile.is_zipfile(tmp_path / "good.npz")
 
 

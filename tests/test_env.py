@@ -5,10 +5,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from lazyq_jax.config import FORGIVING_PUSH, PushConfig
-from lazyq_jax.env import PushEnv, normalize_action, push_reward, sample_outside_disk
-from lazyq_jax.env.push import coulomb_friction
-from lazyq_jax.env.native import native_push
+from lazyq_jax.tasks.push import FORGIVING_PUSH, PushConfig, PushEnv, push_reward
+from lazyq_jax.tasks.push.env import coulomb_friction, normalize_action
+from lazyq_jax.tasks.push.native import native_push
+from lazyq_jax.tasks.sampling import sample_outside_disk
 
 AXES = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
 

@@ -11,6 +11,7 @@ from lazyq_jax.local_model import (
     apply_projection,
     fit_local_linear,
     greedy_action,
+    max_linear,
     precompute_projection,
     safe_norm,
 )
@@ -152,3 +153,27 @@ def test_greedy_action_direction_length_and_zero_beta():
     grad = jax.grad(lambda b: greedy_action(b, 0.1).sum() + safe_norm(b).sum())(beta)
     assert np.isfinite(grad).all()
     np.testing.assert_allclose(jax.jit(greedy_action, static_argnums=1)(beta, 0.1), act)
+
+
+@pytest.mark.parametrize("action_set", ["ball", "box"])
+def test_greedy_action_and_max_against_a_grid_of_actions(action_set):
+    """Eq. (7)'s max and Eq. (9)'s argmax over the action set against brute force: the best of
+    a dense grid of actions (the ball's boundary or the box) within the grid's spacing."""
+    rng = np.random.default_rng(5)
+    c = 0.2
+    beta = rng.normal(size=(50, 2)).astype(np.float32)
+    beta[:5, 1] = 0.0  # on the box a zero component stays at the centre (any value is optimal)
+    if action_set == "ball":
+        theta = np.linspace(-np.pi, np.pi, 20001)
+        grid = c * np.stack([np.cos(theta), np.sin(theta)], -1)
+    else:
+        x = np.linspace(-c, c, 401)
+        grid = np.stack(np.meshgrid(x, x), -1).reshape(-1, 2)
+    best = (beta @ grid.T).max(axis=1)
+    np.testing.assert_allclose(max_linear(beta, c, action_set), best, rtol=1e-4, atol=1e-6)
+    a = np.asarray(greedy_action(beta, c, action_set))
+    np.testing.assert_allclose(np.sum(beta * a, axis=1), best, rtol=1e-4, atol=1e-6)
+    if action_set == "box":
+        assert np.all(np.isin(a, np.float32([-c, 0.0, c]))) and np.all(a[:5, 1] == 0.0)
+    else:
+        np.testing.assert_allclose(np.linalg.norm(a, axis=1), c, rtol=1e-6)

@@ -24,8 +24,8 @@ import jax.numpy as jnp
 import optax
 
 from lazyq_jax.agents.base import Problem, Spec
-from lazyq_jax.agents.common import (Baseline, BaselineConfig, Sampler, apply_mlp,
-                                     log_likelihood, mlp, observe, squash)
+from lazyq_jax.agents.common import (Baseline, BaselineConfig, Sampler, apply_mlp, log_likelihood,
+                                     mlp, observe, squash)
 from lazyq_jax.types import Transitions
 
 

@@ -37,7 +37,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import flax.linen as nn
 import jax
@@ -62,13 +63,13 @@ def _number(value: Any) -> bool:
             and math.isfinite(value))
 
 
-def _int(value: Any) -> bool:
+def is_int(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
 def check_int(obj: Any, name: str, minimum: int) -> None:
     value = getattr(obj, name)
-    check(_int(value) and value >= minimum,
+    check(is_int(value) and value >= minimum,
           f"{type(obj).__name__}.{name} must be an integer >= {minimum}, got {value!r}")
 
 
@@ -94,9 +95,11 @@ class BaselineConfig:
     minibatches of 4096 at paper scale); ``batch_size``: rows per step, drawn uniformly
     with replacement; ``width`` x ``depth``: Dense layers of every network (as the value
     network: 9 layers of 32); ``gamma``: discount (lazy Q's 0.9); ``blocks``: training
-    is cut into this many calls of ``run_block`` of ``ceil(steps / blocks)`` steps each
-    (the last one shorter when ``blocks`` does not divide ``steps``); metrics are means
-    over a block's steps.  The input scale is the problem's (``Problem.state_scale``).
+    is cut into this many calls of ``run_block`` of ``ceil(steps / blocks)`` steps each,
+    ``steps`` in all: the last block is shorter when ``blocks`` does not divide ``steps``
+    (and trailing blocks run no step when ``steps`` is small, e.g. 11 steps in 10
+    blocks: 2, 2, 2, 2, 2, 1, 0, 0, 0, 0); metrics are means over a block's steps.
+    The input scale is the problem's (``Problem.state_scale``).
     """
 
     steps: int = 24_200
@@ -113,16 +116,6 @@ class BaselineConfig:
         check_int(self, "depth", 2)
         check_range(self, "learning_rate", 0.0, math.inf, lo_open=True)
         check_range(self, "gamma", 0.0, 1.0, hi_open=True)
-        steps, blocks = self.steps, self.blocks
-        per = steps_per_block(steps, blocks)
-        if blocks > steps or (blocks - 1) * per >= steps:
-            fits = max(b for b in range(1, min(blocks, steps) + 1)
-                       if (b - 1) * steps_per_block(steps, b) < steps)
-            raise ConfigError(
-                f"{type(self).__name__}.blocks = {blocks} with steps = {steps} runs "
-                f"ceil({steps} / {blocks}) = {per} steps per block and leaves the last block "
-                f"without a step; use blocks <= steps with (blocks - 1) * ceil(steps / blocks) "
-                f"< steps (e.g. blocks = {fits})")
 
 
 # ----------------------------------------------------------------------------- networks

@@ -59,9 +59,9 @@ import numpy as np
 import optax
 
 from lazyq_jax.agents.base import Problem, Spec
-from lazyq_jax.agents.common import (Baseline, BaselineConfig, _int, apply_mlp, check,
-                                     check_int, check_range, mask_of, mlp, observe, polyak,
-                                     select, unit)
+from lazyq_jax.agents.common import (Baseline, BaselineConfig, apply_mlp, check, check_int,
+                                     check_range, is_int, mask_of, mlp, observe, polyak, select,
+                                     unit)
 from lazyq_jax.types import Transitions
 
 DEFAULT_DIRECTIONS = {1: 2, 2: 16, 3: 128, 4: 512, 5: 2048}
@@ -83,7 +83,7 @@ class DQNConfig(BaselineConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check(self.bins is None or (_int(self.bins) and self.bins >= 2),
+        check(self.bins is None or (is_int(self.bins) and self.bins >= 2),
               f"DQNConfig.bins must be None (by n_a) or an integer >= 2, got {self.bins!r}")
         check_range(self, "cql_alpha", 0.0, math.inf)
         check_range(self, "tau", 0.0, 1.0, lo_open=True)
@@ -119,7 +119,7 @@ def spherical_kmeans(n: int, k: int, iters: int = 20, per_codeword: int = 16,
     return centres
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def directions(n_a: int, k: int | None = None) -> np.ndarray:
     """The ball's codebook ``[K, n_a]`` of unit vectors (see the module docstring)."""
     if n_a == 1:

@@ -34,9 +34,9 @@ import jax.numpy as jnp
 import optax
 
 from lazyq_jax.agents.base import Problem, Spec
-from lazyq_jax.agents.common import (Baseline, BaselineConfig, apply_ensemble, apply_mlp, check_range,
-                                     init_ensemble, log_likelihood, mask_of, mlp, observe,
-                                     observe_action, polyak, squash)
+from lazyq_jax.agents.common import (Baseline, BaselineConfig, apply_ensemble, apply_mlp,
+                                     check_range, init_ensemble, log_likelihood, mask_of, mlp,
+                                     observe, observe_action, polyak, squash)
 from lazyq_jax.types import Transitions
 
 

@@ -17,17 +17,18 @@ action value model Q(s, a, g) ~ alpha + beta.a (Eq. 4), behind the agent interfa
 from __future__ import annotations
 
 import dataclasses
+import math
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh
 
-from lazyq_jax.agents.base import Agent, Problem, stack_trees
+from lazyq_jax.agents.base import Agent, Problem
 from lazyq_jax.config import NeighbourConfig, TrainConfig
 from lazyq_jax.keys import purpose_key
-from lazyq_jax.neighbours import build_index, find_neighbours, is_grid_space, search_all
+from lazyq_jax.neighbours import GridIndex, build_index, find_neighbours, is_grid_space, search_all
 from lazyq_jax.parallel import over_seeds
-from lazyq_jax.policy import LazyPolicy, lazy_policy, policy_index
+from lazyq_jax.policy import LazyPolicy, lazy_policy, policy_index, stack_indices
 from lazyq_jax.targets import bootstrap_table
 from lazyq_jax.train import make_train
 from lazyq_jax.types import Transitions
@@ -117,29 +118,34 @@ class LazyAgent(Agent):
     # --- acting
     def policies(self, states, data: Transitions, n_valid) -> LazyPolicy:
         """Each seed's policy over its own dataset (rows ``< n_valid``): the neighbour index
-        (the grids over the same bounds and capacity and window, so they stack), the
+        (stacked over the seeds: one layout and the largest capacities), and the
         bootstrapped values ``r + gamma (1 - done) V(s', g)`` of its trained V."""
         nc, n_seeds = self.config.neighbours, int(np.shape(n_valid)[0])
-        capacity = int(data.r.shape[1])
-        indices = []
-        for i in range(n_seeds):
-            n = int(n_valid[i])
-            g = None if data.g is None else np.asarray(data.g[i, :n])
-            indices.append(policy_index(np.asarray(data.s[i, :n]), g, k=nc.k, radius_s=nc.radius_s,
-                                        radius_g=nc.radius_g, growth=nc.growth,
-                                        max_level=nc.max_level, bounds=self.problem.search_bounds,
-                                        capacity=capacity))
-        if hasattr(indices[0], "max_window"):  # grids: one window for all seeds
-            window = max(index.max_window for index in indices)
-            indices = [index.replace(max_window=window) for index in indices]
+        indices = [policy_index(np.asarray(data.s[i]), None if data.g is None else np.asarray(data.g[i]),
+                                k=nc.k, radius_s=nc.radius_s, radius_g=nc.radius_g, growth=nc.growth,
+                                max_level=nc.max_level, n_valid=int(n_valid[i]),
+                                bounds=self.problem.search_bounds)
+                   for i in range(n_seeds)]
+        index = stack_indices(indices)
+        if isinstance(index, GridIndex):
+            # The query's static window, sized for the data the capacity may still hold (online
+            # rounds: the density near the disk grows at most that much if the new data spread
+            # like the old), as a power of two, kept from call to call: nothing recompiles.
+            grow = data.r.shape[1] / max(1, int(np.min(n_valid)))
+            self._window = max(getattr(self, "_window", 0), _pow2(math.ceil(index.max_window * grow)))
+            index = index.replace(max_window=self._window)
         gamma = self.config.train.gamma
         values = over_seeds(lambda st, d: bootstrap_table(self.trainer.value_fn(st), d, gamma),
                             n_seeds)(states, data)
         length = jnp.full(n_seeds, self.problem.action_length, jnp.float32)
-        return LazyPolicy(stack_trees(indices), data.a, values, length, self.problem.action_set)
+        return LazyPolicy(index, data.a, values, length, self.problem.action_set)
 
     def act(self, policy: LazyPolicy):
         return lambda key, s, g: lazy_policy(policy, key, s, g)[0]
+
+
+def _pow2(n: int) -> int:
+    return 1 << max(int(n) - 1, 0).bit_length()
 
 
 def make(config: LazyConfig | None, problem: Problem, *, mesh: Mesh | None = None) -> LazyAgent:

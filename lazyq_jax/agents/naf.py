@@ -24,6 +24,7 @@ outputs are ``V``, ``u`` and the lower triangle of ``L`` (row by row).
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any
 
 import jax
@@ -32,8 +33,8 @@ import numpy as np
 import optax
 
 from lazyq_jax.agents.base import Problem, Spec
-from lazyq_jax.agents.common import (Baseline, BaselineConfig, apply_mlp, check_range,
-                                     mask_of, mlp, observe, polyak, squash)
+from lazyq_jax.agents.common import (Baseline, BaselineConfig, apply_mlp, check_range, mask_of, mlp,
+                                     observe, polyak, squash)
 from lazyq_jax.types import Transitions
 
 LOG_DIAG_CLIP = 8.0
@@ -52,7 +53,7 @@ class NAFConfig(BaselineConfig):
 
 def action_dim_of(outputs: int) -> int:
     """``n_a`` from the head width ``1 + n_a + n_a (n_a + 1) / 2``."""
-    n = int(round((-3 + np.sqrt(9 + 8 * (outputs - 1))) / 2))
+    n = round((-3 + math.sqrt(9 + 8 * (outputs - 1))) / 2)
     assert 1 + n + n * (n + 1) // 2 == outputs, outputs
     return n
 

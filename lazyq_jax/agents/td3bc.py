@@ -32,9 +32,9 @@ import jax.numpy as jnp
 import optax
 
 from lazyq_jax.agents.base import Problem, Spec
-from lazyq_jax.agents.common import (Baseline, BaselineConfig, apply_ensemble, apply_mlp,
-                                     check_int, check_range, init_ensemble, mask_of, mlp,
-                                     observe, observe_action, polyak, project, select, squash)
+from lazyq_jax.agents.common import (Baseline, BaselineConfig, apply_ensemble, apply_mlp, check_int,
+                                     check_range, init_ensemble, mask_of, mlp, observe,
+                                     observe_action, polyak, project, select, squash)
 from lazyq_jax.types import Transitions
 
 
@@ -82,7 +82,8 @@ class TD3BC(Baseline):
         return squash(self.problem, apply_mlp(self.config, actor, observe(self.problem, s, g)))
 
     def q_values(self, critic: Any, s, g, a) -> jax.Array:
-        return apply_ensemble(self.critic_net, critic, observe_action(self.problem, s, g, a))[..., 0]
+        x = observe_action(self.problem, s, g, a)
+        return apply_ensemble(self.critic_net, critic, x)[..., 0]
 
     def critic_loss(self, critic, model, b: Transitions, key):
         cfg, c = self.config, self.problem.action_length

@@ -42,8 +42,9 @@ the schedule and grid of least estimated work (an extra phase must save 15%: eac
 work of a round is therefore bounded by ``S_p (cap_p W + ranges_p)`` entry tests plus
 ``S_p k (k + log2(S_p cap_p))`` for sampling, whatever its queries.  Measured (N = 1M,
 arm-like data, 320 queries, 2 shared cores): d_s = 3 phases 0-4 (320 x 56 items) and 5
-(16 x 88): 0.07-0.11 ms a query; d_s = 5 one phase 0-5 (320 x 90): 0.14 ms; the scan
-11-14 ms (experiments/bench_neighbours_query.py).
+(16 x 88): 0.07-0.13 ms a query; d_s = 5 one phase 0-5 (320 x 90): 0.11-0.14 ms; the
+scan 11-14 ms (experiments/bench_neighbours_query.py); max_level 10 instead of 5: 0.14
+and 0.24 ms, and 0.36-0.57 ms for queries far outside the data (many rounds).
 
 *Overflow* (never silent).  A query whose stencil alone exceeds its phase's pool is
 flagged in ``PolicyNeighbours.overflow`` and answered exactly by a scan of all data (a
@@ -92,9 +93,10 @@ __all__ = ["Phase", "PolicyIndex", "PolicyNeighbours", "ScanIndex", "build_polic
 
 @struct.dataclass
 class PolicyNeighbours(Neighbours):
-    """:class:`~lazyq_jax.neighbours.Neighbours` plus ``overflow [Q]`` (bool): the query did
-    not fit the index's static capacities; its result comes from the full scan (exact), or
-    is ``level == -1`` if :func:`query_policy` ran with ``fallback=False``."""
+    """:class:`~lazyq_jax.neighbours.Neighbours` plus ``overflow [Q]`` (bool): the query's
+    stencil alone exceeded a phase's pool (the index's static capacities); its result comes
+    from the full scan (exact), or is ``level == -1`` if :func:`query_policy` ran with
+    ``fallback=False``.  ``overflow.sum()`` counts the scans a batch paid for."""
 
     overflow: jax.Array
 
@@ -500,15 +502,21 @@ def _check_data(data_s, data_g, n_valid):
 
 def _parse_schedule(schedule, max_level):
     """``schedule``: phase top levels ``(h_0, ..., max_level)``, each optionally ``(h, frac)``."""
+    message = (f"schedule must list increasing phase top levels ending at max_level={max_level}, each an "
+               f"int or (level, slot fraction in (0, 1]), got {schedule!r}")
     his, fracs = [], []
-    for item in schedule:
-        h, f = (item, None) if isinstance(item, (int, np.integer)) else tuple(item)
-        his.append(int(h))
-        fracs.append(None if f is None else float(f))
+    try:
+        for item in schedule:
+            h, f = (item, None) if isinstance(item, (int, np.integer)) else tuple(item)
+            if isinstance(h, bool) or not isinstance(h, (int, np.integer)):
+                raise ValueError(message)  # noqa: TRY004 (one error type)
+            his.append(int(h))
+            fracs.append(None if f is None else float(f))
+    except (TypeError, ValueError) as e:
+        raise ValueError(message) from e
     if (not his or his[-1] != max_level or any(b <= a for a, b in itertools.pairwise(his)) or his[0] < 0
             or any(f is not None and not 0 < f <= 1 for f in fracs)):
-        raise ValueError(f"schedule must list increasing phase top levels ending at max_level={max_level}, "
-                         f"each an int or (level, slot fraction in (0, 1]), got {schedule!r}")
+        raise ValueError(message)
     return tuple(his), fracs
 
 
@@ -643,11 +651,17 @@ def build_policy_index(data_s, data_g=None, *, k, radius_s, radius_g, growth, ma
 
 def _forced_grid(spec, d_s, kind, d_g, radius_s, radius_g, col_lo, col_hi, n):
     info = _axes_info(d_s, kind, d_g, radius_s, radius_g)
-    spec = [tuple(a) for a in spec]
-    if (len(spec) > MAX_GRID_AXES or any(len(a) != 2 for a in spec) or any(not 0 <= a[0] < len(info) for a in spec)
-            or len({a[0] for a in spec}) != len(spec) or any(not a[1] > 0 for a in spec)):
-        raise ValueError(f"grid must list at most {MAX_GRID_AXES} distinct axes in [0, {len(info)}) as "
-                         f"(axis, width) with positive widths, got {spec!r}")
+    message = (f"grid must list at most {MAX_GRID_AXES} distinct axes in [0, {len(info)}) as (axis, width) "
+               f"with finite positive widths, got {spec!r}")
+    try:
+        spec = [(a, float(w)) for a, w in spec]
+    except (TypeError, ValueError) as e:
+        raise ValueError(message) from e
+    if any(isinstance(a, bool) or not isinstance(a, (int, np.integer)) for a, _ in spec):
+        raise ValueError(message)
+    if (len(spec) > MAX_GRID_AXES or any(not 0 <= a[0] < len(info) for a in spec)
+            or len({a[0] for a in spec}) != len(spec) or any(not 0 < a[1] < math.inf for a in spec)):
+        raise ValueError(message)
     if spec and info[spec[-1][0]][2]:
         raise ValueError("the last grid axis must not be the (periodic) angle")
     if not spec:
@@ -796,7 +810,7 @@ def _phase(index: PolicyIndex, seeds, real, qcols, ip, fr, phase: Phase, n_slots
     bit = _select_bit(word[t], target - prefix[t])
     idx = index.orig[jnp.minimum(item_start[t] + bit, index.orig.shape[0] - 1)]
     idx = jnp.where(found[:, None], idx, -1)
-    inv = jnp.argsort(order)
+    inv = jnp.zeros(n_slots, jnp.int32).at[order].set(jnp.arange(n_slots, dtype=jnp.int32))
     return idx[inv], level.astype(jnp.int32)[inv], m.astype(jnp.int32)[inv], fits, hopeless
 
 
@@ -815,6 +829,8 @@ def query_policy(index: PolicyIndex, key, query_s, query_g=None, *, fallback=Tru
     jittable and vmappable (over seeds: :func:`stack_policy_indices`).
 
     ``query_s [Q, d_s]``, ``query_g`` ``None`` / ``[Q]`` / ``[Q, d_g]`` as the data's goals.
+    Static: the index's layout and capacities and the batch size ``Q`` (one compile per
+    ``Q``); traced: the index arrays, the key, the queries (and ``fallback``).
     Returns :class:`PolicyNeighbours`: ``idx [Q, k]`` (rows of the data), ``level [Q]``
     (``-1``: fewer than ``k`` within ``max_level``; ``idx == -1``), ``count [Q] = |B_level|``
     and ``overflow [Q]`` (answered by the fallback scan, see the module docstring).

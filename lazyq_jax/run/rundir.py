@@ -44,6 +44,11 @@ def write_json(path: Path, data: Any, indent: int | None = 1) -> None:
         path.write_text(json.dumps(data, indent=indent))
 
 
+def as_json(data: Any) -> Any:
+    """``data`` as JSON gives it back (tuples become lists): what stored records compare to."""
+    return json.loads(json.dumps(data))
+
+
 def append_jsonl(path: Path, record: dict) -> None:
     if is_main_process():
         with path.open("a") as f:
@@ -136,8 +141,8 @@ def open_run(run_dir: Path, config: Config, seeds: Sequence[int], *, resume: boo
     ``overwrite`` (its contents are deleted first; it wins over ``resume``).
     """
     path = run_dir / "run.json"
-    record = {"version": RUN_VERSION, "task": config.task, "seeds": list(seeds),
-              "config": to_dict(config)}
+    record = as_json({"version": RUN_VERSION, "task": config.task, "seeds": list(seeds),
+                      "config": to_dict(config)})
     if path.exists() or (run_dir / "study.json").exists() or (run_dir / "checkpoints").exists():
         if overwrite:
             if is_main_process():
@@ -178,6 +183,7 @@ def open_run(run_dir: Path, config: Config, seeds: Sequence[int], *, resume: boo
 def open_method(method_dir: Path, record: dict) -> None:
     """Refuse a method directory trained with other settings; record this method's."""
     path = method_dir / "method.json"
+    record = as_json(record)
     if path.exists():
         stored = json.loads(path.read_text())
         if stored != record:

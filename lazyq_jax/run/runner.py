@@ -449,6 +449,47 @@ def evaluate_run(run_dir: str | Path, *, methods: Sequence[str] | None = None,
     return results
 
 
+@dataclasses.dataclass
+class LoadedRun:
+    """A trained method of a run directory (:func:`load_run`): its ``config`` and ``task``,
+    the ``agent``, the trained ``states`` stacked over ``seeds`` and the seeds' ``data``."""
+
+    config: Config
+    task: Task
+    seeds: tuple[int, ...]
+    agent: Agent
+    states: Any
+    data: SeedData
+
+    def state(self, seed: int | None = None):
+        """One seed's trained state (default: the first seed's)."""
+        return _seed_slice(self.states, self.seeds.index(self.seeds[0] if seed is None else seed))
+
+    def policy(self, seed: int | None = None):
+        """``act(key, s, g) -> actions`` of one seed (jitted)."""
+        i = self.seeds.index(self.seeds[0] if seed is None else seed)
+        one = lambda tree: jax.tree.map(lambda x: x[i:i + 1], tree)
+        policy = self.agent.policies(one(self.states), one(self.data.stacked), self.data.n_valid[i:i + 1])
+        return jax.jit(self.agent.act(_seed_slice(policy, 0)))
+
+
+def load_run(run_dir: str | Path, method: str = "lazy") -> LoadedRun:
+    """Reload a trained method of any run directory (its newest checkpoint, which must be
+    finished), with the data it was trained on; nothing is retrained."""
+    config, seeds = open_existing(run_dir)
+    ctx = _context(config, run_dir, seeds, progress=False)
+    spec = parse_method(method)
+    method_dir = ctx.run_dir / spec.dirname
+    if not (method_dir / "method.json").exists():
+        raise RunDirError(f"{run_dir}: no trained {method} here; its methods: "
+                          f"{', '.join(trained_methods(ctx.run_dir)) or 'none'}")
+    sd = _data(ctx)
+    agent, _ = build_agent(ctx, spec, sd)
+    if ctx.online is not None and spec.name == "lazy":
+        sd = ctx.online.load(sd, ctx.online.rounds_with_data(ctx.online.total_blocks()))
+    return LoadedRun(config, ctx.task, ctx.seeds, agent, load_states(ctx, agent, spec, method_dir, sd), sd)
+
+
 def load_policy(run_dir: str | Path, method: str = "lazy", seed: int | None = None):
     """The trained policy of ``method`` for ``seed`` (default: the run's first) in any run
     directory: ``act(key, s[B, d_s], g) -> actions [B, n_a]``, jitted, for user code.
@@ -456,26 +497,11 @@ def load_policy(run_dir: str | Path, method: str = "lazy", seed: int | None = No
     >>> act = lazyq_jax.load_policy("runs/paper")
     >>> actions = act(jax.random.PRNGKey(0), s, g)
     """
-    config, seeds = open_existing(run_dir)
-    seed = seeds[0] if seed is None else seed
-    if seed not in seeds:
-        raise RunDirError(f"{run_dir} holds seeds {seeds}, not {seed}")
-    ctx = _context(config, run_dir, [seed], progress=False)
-    spec = parse_method(method)
-    method_dir = ctx.run_dir / spec.dirname
-    if not (method_dir / "method.json").exists():
-        raise RunDirError(f"{run_dir}: no trained {method} here; its methods: "
-                          f"{', '.join(trained_methods(ctx.run_dir)) or 'none'}")
-    full = dataclasses.replace(ctx, seeds=tuple(seeds))  # the checkpoint stacks every seed
-    sd_all = _data(full)
-    agent, _ = build_agent(full, spec, sd_all)
-    if full.online is not None and spec.name == "lazy":
-        sd_all = full.online.load(sd_all, full.online.rounds_with_data(full.online.total_blocks()))
-    states = load_states(full, agent, spec, method_dir, sd_all)
-    i = seeds.index(seed)
-    one = lambda tree: jax.tree.map(lambda x: x[i:i + 1], tree)
-    policy = _seed_slice(agent.policies(one(states), one(sd_all.stacked), sd_all.n_valid[i:i + 1]), 0)
-    return jax.jit(agent.act(policy))
+    loaded = load_run(run_dir, method)
+    if seed is not None and seed not in loaded.seeds:
+        raise RunDirError(f"{run_dir} holds seeds {list(loaded.seeds)}, not {seed}")
+    return loaded.policy(seed)
 
 
-__all__ = ["Context", "Problem", "RunDirError", "build_agent", "evaluate_run", "load_policy", "run"]
+__all__ = ["Context", "LoadedRun", "Problem", "RunDirError", "build_agent", "evaluate_run",
+           "load_policy", "load_run", "run"]

@@ -24,7 +24,7 @@ from lazyq_jax.config import Config, ConfigError, to_dict
 from lazyq_jax.data import DatasetError, episodes_to_transitions, load_dataset, save_dataset
 from lazyq_jax.keys import purpose_key
 from lazyq_jax.parallel import is_main_process
-from lazyq_jax.run.rundir import write_json
+from lazyq_jax.run.rundir import as_json, write_json
 from lazyq_jax.tasks import Task
 from lazyq_jax.types import Transitions, pad_transitions
 
@@ -53,8 +53,9 @@ class SeedData:
 
 
 def dataset_meta(config: Config, seed: int) -> dict:
-    """What a seed's static dataset is made from: a cached file must match it."""
-    return {"task": config.task, "collect": to_dict(config.collect), "seed": int(seed)}
+    """What a seed's static dataset is made from (as JSON gives it back): a cached file must
+    match it."""
+    return as_json({"task": config.task, "collect": to_dict(config.collect), "seed": int(seed)})
 
 
 def seed_dataset(task: Task, config: Config, run_dir: Path, seed: int, *, mesh: Mesh | None = None,

@@ -239,7 +239,8 @@ class Task:
     def log_line(self, result: dict) -> str:
         """One line about one seed's evaluation."""
         rates = self.seed_rates(result)
-        return ", ".join(f"{label} {rates[key]:.1%}" for key, label in self.rates if key in rates)
+        return ", ".join(f"{label} {rates[key]:.1%}" for key, label in self.rates
+                         if isinstance(rates.get(key), float))
 
     # --- acting without learning
     def scripted(self, config: Config) -> Act | None:

@@ -135,14 +135,15 @@ def summarize_a(rollouts: Rollouts, n_directions: int, episodes_per_direction: i
 
 def direction_rates(per_goal: list[dict]) -> dict:
     """Correct rates over the axis goals (0, 90, 180, 270 degrees), the diagonal goals
-    (45 + 90 k degrees) and all goals of protocol A's ``per_goal`` rows."""
+    (45 + 90 k degrees) and all goals of protocol A's ``per_goal`` rows (None where no goal
+    of the kind was evaluated)."""
     goals = np.array([row["goal"] for row in per_goal])
     correct = np.array([row["correct"] for row in per_goal])
     total = np.array([row["correct"] + row["wrong"] + row["not_pushed"] for row in per_goal])
     phase = np.mod(goals, np.pi / 2)
     axis = np.isclose(phase, 0, atol=1e-5) | np.isclose(phase, np.pi / 2, atol=1e-5)
     diagonal = np.isclose(phase, np.pi / 4, atol=1e-5)
-    rate = lambda m: float(correct[m].sum() / total[m].sum()) if m.any() else float("nan")
+    rate = lambda m: float(correct[m].sum() / total[m].sum()) if m.any() else None  # no such goals
     return {"axis_correct_rate": rate(axis), "diagonal_correct_rate": rate(diagonal),
             "overall_correct_rate": rate(np.ones_like(axis))}
 
