@@ -189,7 +189,9 @@ def over_seeds(fn: Callable, n_seeds: int) -> Callable:
     if n_seeds > 1:
         return jax.jit(jax.vmap(fn))
     one = jax.jit(fn)
-    return lambda *args: jax.tree.map(lambda x: x[None], one(*jax.tree.map(lambda x: x[0], args)))
+    unbatched = lambda *args: jax.tree.map(lambda x: x[None], one(*jax.tree.map(lambda x: x[0], args)))
+    unbatched.jitted = one  # the compiled function (e.g. to count its programs)
+    return unbatched
 
 
 def is_main_process() -> bool:

@@ -14,15 +14,16 @@ assert "--xla_force_host_platform_device_count=4" in os.environ.get("XLA_FLAGS",
     "run with XLA_FLAGS=--xla_force_host_platform_device_count=4"
 
 import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from lazyq_jax.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
-from lazyq_jax.config import (CollectConfig, Config, ConfigError, ParallelConfig,  # noqa: E402
-                              TrainConfig)
-from lazyq_jax.data import collect  # noqa: E402
+from lazyq_jax.config import ConfigError, ParallelConfig, TrainConfig  # noqa: E402
 from lazyq_jax.neighbours import build_index, search_all  # noqa: E402
 from lazyq_jax.parallel import make_mesh, put, replicated  # noqa: E402
-from lazyq_jax.targets import local_fits  # noqa: E402
+from lazyq_jax.targets import lazy_target, local_fits  # noqa: E402
+from lazyq_jax.tasks.push import CollectConfig  # noqa: E402
+from lazyq_jax.tasks.push.collect import collect  # noqa: E402
 from lazyq_jax.train import make_train  # noqa: E402
 
 assert jax.device_count() == 4, jax.devices()
@@ -62,77 +63,72 @@ def check_search_bitwise():
           f"{int(np.asarray(ref.level).max())}) bitwise equal on 1 (no mesh), 1, 2 and 4 devices")
 
 
-def check_training_close(data):
+def check_first_update(data):
+    """One training cycle of ONE Adam step (the whole dataset is one minibatch) on 2 and 4
+    devices against one device: what is deterministic up to reduction order.  Training
+    outcomes after many steps are not compared (training is chaotic)."""
     idx = search_all(build_index(data.s, data.g, k=10, max_level=0), jax.random.PRNGKey(2),
                      data.s, data.g).idx
-    cfg = TrainConfig(epochs=2, batch_size=64, width=16, depth=4, target_batch_size=128)
+    n = data.size // 4 * 4
+    data = jax.tree.map(lambda x: x[:n], data)
+    idx = jnp.minimum(idx[:n], n - 1)
+    cfg = TrainConfig(epochs=1, batch_size=n, width=16, depth=4, target_batch_size=128)
     ref_tr = make_train(cfg, 0.1)
-    state0 = ref_tr.init(jax.random.PRNGKey(3))
+    state0 = ref_tr.init(jax.random.PRNGKey(3), data)
     ref_state, ref_metrics = jax.jit(ref_tr.run_cycle)(state0, data, idx)
-    ref_v = np.asarray(ref_tr.value_fn(ref_state)(data.s, data.g))
-    ref_fits = local_fits(ref_tr.value_fn(state0), data, idx, gamma=0.9, batch_size=128)
-    moved = max(np.abs(a - b).max() for a, b in zip(leaves(ref_state.params), leaves(state0.params)))
-    # ||grad_theta V(s, g)||_1, the largest over the data (for the V tolerance below)
-    variables = {"batch_stats": ref_state.batch_stats}
-    v_one = lambda p, s, g: ref_tr.network.apply({**variables, "params": p}, s[None], g[None])[0]
-    grads = jax.vmap(jax.grad(v_one), in_axes=(None, 0, 0))(ref_state.params, data.s, data.g)
-    grad_l1 = float(sum(np.abs(np.asarray(x)).reshape(data.size, -1).sum(1) for x in
-                        jax.tree.leaves(grads)).max())
-    for n in (2, 4):
-        mesh = MESHES[n]
+    # The first step's gradient on the reference, from the targets of the frozen network.
+    alpha, beta, y_nb = local_fits(ref_tr.value_fn(state0), data, idx, gamma=cfg.gamma, batch_size=128)
+    y = lazy_target(alpha, beta, y_nb, 0.1)[0]
+
+    def loss(params):
+        v, _ = ref_tr.network.apply({"params": params, "batch_stats": state0.batch_stats}, data.s,
+                                    data.g, train=True, mutable=["batch_stats"])
+        return jnp.mean((v - y) ** 2)
+
+    grads = leaves(jax.grad(loss)(state0.params))
+    for n_dev in (2, 4):
+        mesh = MESHES[n_dev]
         tr = make_train(cfg, 0.1, mesh=mesh)
         state, metrics = jax.jit(tr.run_cycle)(put(state0, replicated(mesh)),
                                                put(data, replicated(mesh)), idx)
-        # Tolerances from what is compared (not from one machine):
-        # * parameters: Adam moves each by at most ~lr per step, so gradients that differ by a
-        #   relative rho give parameters within lr * steps * rho.  Reduction order changes
-        #   gradients by rho ~ 1e-6; a wrong shard or unsynchronised batch norm by rho ~ 1
-        #   (the latter measured at 1.3e-2 here).  The bound takes rho = 1e-3.
-        steps = cfg.epochs * (data.size // cfg.batch_size)
-        bound = cfg.learning_rate * steps * 1e-3
-        diff = max(np.abs(a - b).max() for a, b in zip(leaves(ref_state), leaves(state)))
-        assert diff < bound, f"{n} devices: state differs by {diff:.2e} > {bound:.1e} after one cycle"
-        # * V: to first order |dV| <= ||grad_theta V||_1 * max|d theta| (x2 for second order).
-        v = np.asarray(tr.value_fn(state)(data.s, data.g))
-        v_diff = np.abs(v - ref_v).max()
-        v_bound = 2 * grad_l1 * max(diff, 1e-12) + 1e-6 * np.abs(ref_v).max()
-        assert v_diff < v_bound, f"{n} devices: V differs by {v_diff:.2e} > {v_bound:.1e}"
-        # * the loss: a float32 mean over ~26 minibatch means of 64 rows: relative rounding
-        #   <= ~100 ulp = 1e-5; rtol 1e-4.
-        np.testing.assert_allclose(metrics["loss"], ref_metrics["loss"], rtol=1e-4)
-        # * local fits: compare the fitted values alpha + beta.a_j at the neighbours' actions,
-        #   not beta (nearly collinear actions make beta ill-conditioned: a 1e-7 change of y
-        #   moved one beta by 1.5e-6 on another machine).  The fit is a projection H of the
-        #   neighbours' values y (||H|| <= 1), so the fitted values differ by at most
-        #   ||dy||_2 <= sqrt(k) max|dy|, plus float32 rounding of the fit (1e-5 of max|y|).
-        fits = jax.jit(lambda d, i: local_fits(tr.value_fn(state0), d, i, gamma=0.9,
-                                               batch_size=128, mesh=mesh))(
-            put(data, replicated(mesh)), idx)
-        fitted = lambda f: np.asarray(f[0])[:, None] + np.einsum(
-            "na,nka->nk", np.asarray(f[1]), np.asarray(data.a)[np.asarray(idx)])
-        dy = np.abs(np.asarray(fits[2]) - np.asarray(ref_fits[2])).max()
-        y_max = np.abs(np.asarray(ref_fits[2])).max()
-        assert dy <= 1e-5 * y_max, f"{n} devices: neighbour values differ by {dy:.2e}"
-        fit_diff = np.abs(fitted(fits) - fitted(ref_fits)).max()
-        fit_bound = np.sqrt(idx.shape[1]) * dy + 1e-5 * y_max
-        assert fit_diff <= fit_bound, f"{n} devices: fitted values differ by {fit_diff:.2e} > {fit_bound:.1e}"
-        print(f"train: one cycle ({steps} Adam steps) on {n} devices: parameters, batch "
-              f"statistics and Adam moments within {diff:.1e} (bound {bound:.1e}; training "
-              f"moved them by up to {moved:.2f}), V within {v_diff:.1e} (bound {v_bound:.1e}); "
-              f"fitted local values within {fit_diff:.1e} (bound {fit_bound:.1e})")
+        # Tolerances from what is compared:
+        # * the loss, the targets' statistics: float32 means over n rows summed in another
+        #   order: relative rounding <= n * 2^-24 (worst case).
+        rtol = n * 2.0 ** -24
+        for name in ("loss_first_epoch", "target_mean", "target_std", "beta_norm_mean"):
+            np.testing.assert_allclose(metrics[name], ref_metrics[name], rtol=rtol, err_msg=name)
+        np.testing.assert_allclose(metrics["clip_fraction"], ref_metrics["clip_fraction"], atol=2 / n)
+        # * the parameters after Adam's first step p - lr g / (|g| + eps): where |g| >> eps
+        #   the step is lr sign(g) up to lr eps |dg| / g^2, i.e. equal to 1e-3 lr for any
+        #   gradient change |dg| < 1e-3 g^2 / eps (reduction order: ~1e-7 |g|); where |g| is
+        #   tiny the step can be anything in [-lr, lr].  A wrong shard or unsynchronised
+        #   batch norm changes the gradient by O(|g|) and flips signs.
+        lr = cfg.learning_rate
+        for p, p_ref, g in zip(leaves(state.params), leaves(ref_state.params), grads):
+            big = np.abs(g) > 1e-4
+            assert big.mean() > 0.5, "too few informative gradients: the check is too weak"
+            diff = np.abs(p - p_ref)
+            assert diff[big].max(initial=0) < 1e-3 * lr, f"{n_dev} devices: step differs by {diff[big].max():.2e}"
+            assert diff.max() <= 2 * lr * (1 + 1e-6)
+        # * the batch-norm statistics: the whole minibatch's (synchronised) mean and variance,
+        #   float32 sums of n rows: within n * 2^-24 of their magnitude.
+        for a, b in zip(leaves(state.batch_stats), leaves(ref_state.batch_stats)):
+            np.testing.assert_allclose(a, b, rtol=0, atol=rtol * (np.abs(b).max() + 1e-12) + 1e-7)
+        print(f"train: the first Adam step on {n_dev} devices equals one device's (loss, targets "
+              f"within rtol {rtol:.0e}; steps of informative gradients within 1e-3 lr; batch "
+              "statistics within rounding)")
     return state
 
 
 def check_checkpoint_moves_between_device_counts(state):
     with tempfile.TemporaryDirectory() as tmp:
-        config = Config(train=TrainConfig(epochs=2, batch_size=64, width=16, depth=4,
-                                          target_batch_size=128))
-        save_checkpoint(tmp, state, config)  # state replicated over 4 devices
-        restored, _ = load_checkpoint(tmp)
+        abstract = jax.eval_shape(lambda: state)
+        save_checkpoint(tmp, state, 1)  # state replicated over 4 devices
+        restored, _ = load_checkpoint(tmp, abstract)
         assert len(jax.tree.leaves(restored)[0].devices()) == 1
         for a, b in zip(leaves(state), leaves(restored)):
             np.testing.assert_array_equal(a, b)
-        restored, _ = load_checkpoint(tmp, sharding=replicated(MESHES[2]))
+        restored, _ = load_checkpoint(tmp, abstract, sharding=replicated(MESHES[2]))
         assert len(jax.tree.leaves(restored)[0].devices()) == 2
     print("checkpoint: saved from 4 devices, restored bitwise on 1 and on 2")
 
@@ -160,7 +156,7 @@ def check_errors():
 if __name__ == "__main__":
     data = check_collect_bitwise()
     check_search_bitwise()
-    state = check_training_close(data)
+    state = check_first_update(data)
     check_checkpoint_moves_between_device_counts(state)
     check_default_mesh()
     check_errors()

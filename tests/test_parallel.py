@@ -1,5 +1,6 @@
 """Device meshes: config errors here, the multi-device checks in a 4-device process."""
 
+import json
 import os
 import socket
 import subprocess
@@ -10,11 +11,10 @@ import jax
 import numpy as np
 import pytest
 
-from lazyq_jax.checkpoint import load_checkpoint
 from lazyq_jax.config import ConfigError, ParallelConfig, override
 from lazyq_jax.data import load_dataset
 from lazyq_jax.parallel import check_divisible, force_host_devices, make_mesh
-from lazyq_jax.pipeline import mesh_for
+from lazyq_jax.run import run
 
 from conftest import PUSH
 
@@ -37,8 +37,8 @@ def test_more_devices_than_exist_is_a_config_error_with_a_hint():
     n = jax.device_count() + 1
     with pytest.raises(ConfigError, match=f"parallel.devices={n} but only .*xla_force_host"):
         make_mesh(n)
-    with pytest.raises(ConfigError, match="parallel.devices"):
-        mesh_for(override(PUSH, [f"parallel.devices={n}"]))
+    with pytest.raises(ConfigError, match="parallel.devices"):  # before anything is written
+        run(override(PUSH, [f"parallel.devices={n}"]), "/nonexistent/never/written")
 
 
 @pytest.mark.parametrize("bad", [-1, 1.5, True, "2"])
@@ -73,13 +73,13 @@ def _free_port() -> int:
 
 def test_two_processes_match_one_process(tmp_path):
     """Multi-host on one machine: 2 processes (1 CPU device each, gloo collectives) launched
-    by hand as on a cluster.  The dataset is bitwise the single-process one, the trained
-    parameters within the Adam bound of a few steps, and files are written once."""
-    # 4 Adam steps (one epoch of 4 minibatches of 1024): too few for the chaos of training
-    # to amplify rounding (see tests/test_study.py), so the Adam bound below applies.
+    by hand as on a cluster.  The dataset is bitwise the single-process one; the first
+    cycle's loss at the initial parameters and its targets (from the frozen network) agree
+    within float32 rounding of their means; files are written once.  One Adam step only:
+    training outcomes of the two programs are not compared (training is chaotic)."""
     args = [sys.executable, "-m", "lazyq_jax", "train", "--preset", "smoke", "--no-eval",
             "--no-progress", "--set", "collect.n_starts=120", "--set", "train.cycles=1",
-            "--set", "train.epochs=1", "--set", "train.batch_size=1024"]
+            "--set", "train.epochs=1", "--set", "train.batch_size=8192"]
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     port = _free_port()
     procs = [subprocess.Popen(args + ["--run-dir", str(tmp_path / "multi")], stdout=subprocess.PIPE,
@@ -95,24 +95,21 @@ def test_two_processes_match_one_process(tmp_path):
             p.kill()
     for i, (p, log) in enumerate(zip(procs, logs)):
         assert p.returncode == 0, f"process {i}:\n{log}"
-    assert "on 2 processes" in logs[0]
+    assert "2 cpu devices" in logs[0]
     single = subprocess.run(args + ["--run-dir", str(tmp_path / "single")], env=env,
                             capture_output=True, text=True, timeout=600)
     assert single.returncode == 0, single.stdout + single.stderr
 
-    multi_data, _, _ = load_dataset(tmp_path / "multi" / "dataset.npz")
-    single_data, _, _ = load_dataset(tmp_path / "single" / "dataset.npz")
+    multi_data, _ = load_dataset(tmp_path / "multi" / "data" / "0" / "dataset.npz")
+    single_data, _ = load_dataset(tmp_path / "single" / "data" / "0" / "dataset.npz")
     for a, b in zip(jax.tree.leaves(multi_data), jax.tree.leaves(single_data)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    multi_state, _ = load_checkpoint(tmp_path / "multi" / "checkpoints")
-    single_state, _ = load_checkpoint(tmp_path / "single" / "checkpoints")
-    diff = max(float(np.abs(np.asarray(a) - np.asarray(b)).max()) for a, b in
-               zip(jax.tree.leaves(multi_state.params), jax.tree.leaves(single_state.params)))
-    # Adam moves a parameter by at most ~lr per step: gradients that differ by a relative
-    # rho (1e-6 for reduction order, ~1 for a wrong shard) give lr * steps * rho; rho = 1e-3.
-    _, config = load_checkpoint(tmp_path / "single" / "checkpoints")
-    steps = config.train.epochs * (single_data.size // config.train.batch_size)
-    assert steps >= 3
-    assert diff < config.train.learning_rate * steps * 1e-3, (diff, steps)
-    lines = (tmp_path / "multi" / "metrics.jsonl").read_text().splitlines()
-    assert len(lines) == 1, lines  # one writer
+    read = lambda d: [json.loads(x) for x in (d / "lazy" / "metrics.jsonl").read_text().splitlines()]
+    multi, one = read(tmp_path / "multi"), read(tmp_path / "single")
+    assert len(multi) == 1, multi  # one writer
+    n = single_data.size
+    assert n <= 8192  # one minibatch: the first epoch's loss is at the initial parameters
+    rtol = n * 2.0 ** -24  # float32 means over n rows summed in another order
+    for name in ("loss_first_epoch", "target_mean", "target_std", "beta_norm_mean"):
+        np.testing.assert_allclose(multi[0][name], one[0][name], rtol=max(rtol, 1e-5), err_msg=name)
+    np.testing.assert_allclose(multi[0]["clip_fraction"], one[0]["clip_fraction"], atol=2 / n + 1e-5)

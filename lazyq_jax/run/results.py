@@ -33,27 +33,28 @@ def method_summary(task: Task, per_seed_eval: list[dict]) -> dict:
     return out
 
 
-def earlier_methods(run_dir: Path, seeds, methods) -> dict:
-    """The rows of ``results.json`` for methods an earlier invocation ran and this one does
-    not (so that resuming with a subset of the methods adds to the table)."""
+def earlier_methods(run_dir: Path, seeds) -> dict:
+    """The method rows of the run's ``results.json`` (same seeds), in their order: a resume
+    with a subset of the methods replaces their rows and keeps the others'."""
     path = run_dir / "results.json"
     if not path.exists():
         return {}
     old = json.loads(path.read_text())
     if old.get("version") != RUN_VERSION or old.get("seeds") != list(seeds):
         return {}
-    return {name: m for name, m in old.get("methods", {}).items() if name not in methods}
+    return old.get("methods", {})
 
 
 def write_results(task: Task, run_dir: Path, seeds, summaries: list[dict], methods: dict[str, dict],
                   earlier: dict | None = None) -> dict:
     """``results.json``, ``summary.md`` and the comparison figures for ``methods`` (``{spec:
-    {"per_seed_eval", "timings"}}``) after the ``earlier`` rows."""
+    {"per_seed_eval", "timings"}}``) merged into the ``earlier`` rows (their order kept, the
+    new methods after them)."""
+    rows = {name: {**method_summary(task, m["per_seed_eval"]), "timings": m["timings"]}
+            for name, m in methods.items()}
+    merged = {name: rows.get(name, old) for name, old in (earlier or {}).items()}
     results = {"version": RUN_VERSION, "task": task.name, "seeds": list(seeds), "ci": CI,
-               "data": task.data_table(summaries),
-               "methods": {**(earlier or {}),
-                           **{name: {**method_summary(task, m["per_seed_eval"]), "timings": m["timings"]}
-                              for name, m in methods.items()}}}
+               "data": task.data_table(summaries), "methods": {**merged, **rows}}
     write_json(run_dir / "results.json", results)
     text = summary_markdown(task, results)
     if text:

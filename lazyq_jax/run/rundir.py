@@ -143,12 +143,13 @@ def open_run(run_dir: Path, config: Config, seeds: Sequence[int], *, resume: boo
     path = run_dir / "run.json"
     record = as_json({"version": RUN_VERSION, "task": config.task, "seeds": list(seeds),
                       "config": to_dict(config)})
+    barrier("open run: every process reads the directory as it was")
     if path.exists() or (run_dir / "study.json").exists() or (run_dir / "checkpoints").exists():
         if overwrite:
+            barrier("overwrite: checked")
             if is_main_process():
                 for child in run_dir.iterdir():
                     shutil.rmtree(child) if child.is_dir() else child.unlink()
-            barrier("overwrite")
         elif not path.exists():
             raise RunDirError(f"{run_dir} holds a run of an older lazyq-jax; pass --overwrite to "
                               "replace it or pick another --run-dir")
@@ -175,19 +176,23 @@ def open_run(run_dir: Path, config: Config, seeds: Sequence[int], *, resume: boo
             if old.get("train", {}).get("cycles", 0) > config.train.cycles:
                 raise RunDirError(f"{run_dir} was trained for {old['train']['cycles']} cycles; a resume "
                                   f"may add cycles, not remove them (train.cycles={config.train.cycles})")
+    barrier("open run: checked")
     if is_main_process():
         run_dir.mkdir(parents=True, exist_ok=True)
     write_json(path, record)
+    barrier("open run: recorded")
 
 
 def open_method(method_dir: Path, record: dict) -> None:
     """Refuse a method directory trained with other settings; record this method's."""
     path = method_dir / "method.json"
     record = as_json(record)
+    barrier("open method: every process reads it as it was")
     if path.exists():
         stored = json.loads(path.read_text())
         if stored != record:
             differ = config_diff(stored, record)
             raise RunDirError(f"{method_dir} holds {stored.get('method')} trained with other settings "
                               f"({', '.join(differ)}); pass --overwrite or pick another --run-dir")
+    barrier("open method: checked")
     write_json(path, record)

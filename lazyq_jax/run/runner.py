@@ -178,7 +178,6 @@ def train_method(ctx: Context, agent: Agent, spec: MethodSpec, method_dir: Path,
         log(f"{spec.text}: resuming after block {first} of {total}")
     round0 = sd.n_valid.copy()
     if online is not None:
-        online.check(sd)
         sd = online.load(sd, online.rounds_with_data(first))
         keep_jsonl(method_dir / "rounds.jsonl", lambda r: r["block"] <= first)
     mesh = getattr(agent, "mesh", None)
@@ -188,11 +187,10 @@ def train_method(ctx: Context, agent: Agent, spec: MethodSpec, method_dir: Path,
     meta = {"method": spec.text, "seeds": list(ctx.seeds), "task": ctx.task.name}
     bar = tqdm(total=total, initial=first, desc=f"{spec.text}: training ({n_seeds} seed"
                f"{'s' if n_seeds > 1 else ''})", unit="block", disable=not ctx.progress, leave=False)
-    aux = None
+    aux, round_timing = None, {}
     if online is not None and first > 0:
-        _round_end(ctx, agent, online, states, sd, method_dir, first, {})
+        _round_end(ctx, agent, online, states, sd, method_dir, first, {}, run_block)
     for block in range(first, total):
-        round_timing = {}
         r = online.round_starting(block) if online is not None else None
         if r is not None:
             t = time.perf_counter()
@@ -216,9 +214,16 @@ def train_method(ctx: Context, agent: Agent, spec: MethodSpec, method_dir: Path,
         bar.update(1)
         _log_block(spec, block + 1, total, record)
         if online is not None:
-            _round_end(ctx, agent, online, states, sd, method_dir, block + 1, round_timing)
+            if _round_end(ctx, agent, online, states, sd, method_dir, block + 1, round_timing, run_block):
+                round_timing = {}
     bar.close()
     return states, sd, timings
+
+
+def _compiled(fn) -> int | None:
+    """How many programs a jitted function (or :func:`over_seeds`' one-seed wrapper) holds."""
+    fn = getattr(fn, "jitted", fn)
+    return fn._cache_size() if hasattr(fn, "_cache_size") else None
 
 
 _EXPLORERS: dict = {}
@@ -235,13 +240,14 @@ def _explorer(ctx: Context, agent: Agent):
 
 
 def _round_end(ctx: Context, agent: Agent, online: OnlineRounds, states, sd: SeedData,
-               method_dir: Path, block: int, timing: dict) -> None:
+               method_dir: Path, block: int, timing: dict, run_block) -> bool:
     """After the last block of a round: the task's quick evaluation of every seed, recorded
-    with the round's data in ``rounds.jsonl`` (once per round)."""
+    with the round's data in ``rounds.jsonl`` (once per round), and how often the round's
+    programs compiled so far (once each: the shapes never change)."""
     path = method_dir / "rounds.jsonl"
     ends = {online.round_end(r): r for r in range(ctx.config.online.rounds + 1)}
     if block not in ends or any(rec["round"] == ends[block] for rec in read_jsonl(path)):
-        return
+        return False
     r = ends[block]
     t = time.perf_counter()
     policies = agent.policies(states, sd.stacked, sd.n_valid)
@@ -252,13 +258,17 @@ def _round_end(ctx: Context, agent: Agent, online: OnlineRounds, states, sd: See
         rates = ctx.task.seed_rates(ev.per_seed[i])
         seeds.append({"seed": seed, "moves_total": int(sd.n_valid[i]) // per_move,
                       "protocol_a": {k: v for k, v in rates.items() if isinstance(v, float)}})
+    timing = dict(timing)
     counts = timing.pop("counts", {})
     timing["eval_s"] = round(time.perf_counter() - t, 2)
-    record = {"round": r, "block": block, "seeds": seeds, "counts": counts, "seconds": timing}
+    compiled = {"run_block": _compiled(run_block), "explore": _compiled(_explorer(ctx, agent))}
+    record = {"round": r, "block": block, "seeds": seeds, "counts": counts, "seconds": timing,
+              "compiled": compiled}
     append_jsonl(path, record)
     rates = [s["protocol_a"].get("overall_correct_rate", np.nan) for s in seeds]
     log(f"round {r}/{ctx.config.online.rounds}: moves {[s['moves_total'] for s in seeds]}; quick "
         f"protocol A, all goals correct {np.round(rates, 3).tolist()}")
+    return True
 
 
 # ----------------------------------------------------------------------------- evaluation
@@ -307,9 +317,10 @@ def _context(config: Config, run_dir, seeds, progress: bool) -> Context:
 
 
 def _data(ctx: Context) -> SeedData:
-    capacity = ctx.online.capacity if ctx.online is not None else None
-    return static_data(ctx.task, ctx.config, ctx.run_dir, ctx.seeds, capacity=capacity,
-                       mesh=ctx.mesh, progress=ctx.progress)
+    """The seeds' static data (online: checked against the budget, padded to its capacity)."""
+    sd = static_data(ctx.task, ctx.config, ctx.run_dir, ctx.seeds, mesh=ctx.mesh,
+                     progress=ctx.progress)
+    return sd if ctx.online is None else ctx.online.padded(sd)
 
 
 def run(config: Config, run_dir: str | Path, *, seeds: Sequence[int] | None = None,
@@ -343,7 +354,7 @@ def run(config: Config, run_dir: str | Path, *, seeds: Sequence[int] | None = No
         records[spec.text] = _run_method(ctx, spec, sd, evaluate=evaluate)
     if not evaluate or not is_main_process():
         return {}
-    earlier = earlier_methods(ctx.run_dir, ctx.seeds, records) if resume else {}
+    earlier = earlier_methods(ctx.run_dir, ctx.seeds) if resume else {}
     results = write_results(ctx.task, ctx.run_dir, ctx.seeds, sd.summaries, records, earlier)
     log((ctx.run_dir / "summary.md").read_text())
     log(f"run: done in {time.perf_counter() - t0:.1f} s -> {ctx.run_dir / 'results.json'}")
@@ -443,7 +454,7 @@ def evaluate_run(run_dir: str | Path, *, methods: Sequence[str] | None = None,
         raise RunDirError(f"{run_dir}: cannot evaluate: {e}") from e
     records = {spec.text: _run_method(ctx, spec, sd, evaluate=True, force_eval=True, figures=figures,
                                       train=False) for spec in specs}
-    earlier = earlier_methods(ctx.run_dir, ctx.seeds, records)
+    earlier = earlier_methods(ctx.run_dir, ctx.seeds)
     results = write_results(ctx.task, ctx.run_dir, ctx.seeds, sd.summaries, records, earlier)
     log((ctx.run_dir / "summary.md").read_text())
     return results

@@ -83,19 +83,15 @@ def seed_dataset(task: Task, config: Config, run_dir: Path, seed: int, *, mesh: 
 
 
 def static_data(task: Task, config: Config, run_dir: Path, seeds: Sequence[int], *,
-                capacity: int | None = None, mesh: Mesh | None = None, progress: bool = True
-                ) -> SeedData:
+                mesh: Mesh | None = None, progress: bool = True) -> SeedData:
     """Every seed's static dataset (collected or reused; the collection compiles once), padded
-    to the longest (or ``capacity``) and stacked."""
+    to the longest and stacked."""
     datasets, summaries = [], []
     for seed in tqdm(seeds, desc="data (seeds)", disable=not progress or len(seeds) == 1, leave=False):
         data, summary = seed_dataset(task, config, run_dir, seed, mesh=mesh, progress=progress)
         datasets.append(data)
         summaries.append(summary)
-    n_max = max(d.size for d in datasets) if capacity is None else capacity
-    if n_max < max(d.size for d in datasets):
-        raise ConfigError(f"a dataset of {max(d.size for d in datasets)} rows exceeds the capacity "
-                          f"{n_max}")
+    n_max = max(d.size for d in datasets)
     stacked = jax.tree.map(lambda *x: jnp.stack(x), *[pad_transitions(d, n_max) for d in datasets])
     return SeedData(tuple(seeds), stacked, np.array([d.size for d in datasets], np.int32), summaries)
 
@@ -147,12 +143,18 @@ class OnlineRounds:
         o = self.config.online
         return max(0, (o.max_moves - round0_moves) // o.rounds)
 
-    def check(self, sd: SeedData) -> None:
+    def padded(self, sd: SeedData) -> SeedData:
+        """Round 0's data padded to the capacity of the whole run (refused if the budget
+        leaves no moves for the rounds)."""
         moves = int(np.max(sd.n_valid)) // self.per_move
         if moves >= self.config.online.max_moves:
             raise ConfigError(f"online.max_moves={self.config.online.max_moves} leaves no moves for the "
                               f"online rounds: round 0 already holds {moves}; raise online.max_moves "
                               "or collect less data")
+        stacked = jax.tree.map(lambda x: jnp.concatenate(
+            [x, jnp.zeros((x.shape[0], self.capacity - x.shape[1], *x.shape[2:]), x.dtype)], 1),
+            sd.stacked)
+        return dataclasses.replace(sd, stacked=stacked)
 
     def path(self, seed: int, r: int) -> Path:
         return self.run_dir / "data" / str(seed) / f"round_{r}.npz"

@@ -188,7 +188,7 @@ def explore_round(act: Act, key: jax.Array, config: Config) -> dict:
     reward = push_reward(delta[:, :, None, :], labels, move_threshold=arm.push.move_threshold,
                          cos_threshold=arm.push.cos_threshold)
     return {"s": s, "a": a, "s_next": s_next, "moved": moved, "g": labels, "r": reward,
-            "counts": episode_counts(delta, moved, goals, arm.push.cos_threshold)}
+            "goal": goals, "counts": episode_counts(delta, moved, goals, arm.push.cos_threshold)}
 
 
 def disk_at_origin(collect: ArmCollectConfig):

@@ -72,7 +72,7 @@ def explore_round(act: Act, key: jax.Array, config: Config) -> dict:
     reward = push_reward(delta[:, :, None, :], labels, move_threshold=push.move_threshold,
                          cos_threshold=push.cos_threshold)
     return {"s": s, "a": a, "s_next": s_next, "moved": moved, "g": labels, "r": reward,
-            "counts": episode_counts(delta, moved, goals, push.cos_threshold)}
+            "goal": goals, "counts": episode_counts(delta, moved, goals, push.cos_threshold)}
 
 
 def episode_counts(delta, moved, goals, cos_threshold):

@@ -163,8 +163,7 @@ def direction_seed_rates(result: dict) -> dict:
     a = result["protocol_a"]
     correct = np.array([row["correct"] for row in a["per_goal"]])
     total = np.array([row["correct"] + row["wrong"] + row["not_pushed"] for row in a["per_goal"]])
-    rates = {key: a[key] for key in ("axis_correct_rate", "diagonal_correct_rate",
-                                     "overall_correct_rate")}
+    rates = direction_rates(a["per_goal"])
     rates["not_pushed_rate"] = float(sum(r["not_pushed"] for r in a["per_goal"]) / total.sum())
     rates["per_direction_correct_rate"] = (correct / total).round(6).tolist()
     if "protocol_b" in result:
