@@ -54,15 +54,28 @@ class NeighbourConfig:
     (wrapped for angle goals), both radii grown by ``growth`` until ``k`` points are inside.
     ``max_level``: the most growths a policy step may use (its query has static
     capacities for that many; a query needing more gets no action, and is counted).
-    The tasks set the radii of their own spaces (e.g. radians in joint space)."""
+    ``features``: where the state distance is measured: ``"state"`` (the state itself, the
+    paper's) or a feature map the task offers (e.g. the arm's ``"fingertip"``); §V-A-2
+    defines B(s, g) by a distance in state space, and nothing in Eq. 4-9 requires it to
+    be the network's input.  ``radius_s`` is in the units of that space.
+    ``feature_weight``: a parameter of the task's feature map (the arm's ``"fingertip"``:
+    the weight of the joint angles beside the fingertip).  The tasks set the radii of
+    their own spaces (e.g. radians in joint space)."""
 
     k: int = 20
     radius_s: float = 0.06
     radius_g: float = 0.1
     growth: float = 2 ** (1 / 3)
     max_level: int = 5
+    features: str = "state"
+    feature_weight: float = 0.25
 
     def __post_init__(self) -> None:
+        _check(isinstance(self.features, str) and bool(self.features),
+               f"NeighbourConfig.features must be a feature map's name, got {self.features!r}")
+        _check(isinstance(self.feature_weight, (int, float)) and not isinstance(self.feature_weight, bool)
+               and 0 <= self.feature_weight < float("inf"),
+               f"NeighbourConfig.feature_weight must be a number >= 0, got {self.feature_weight!r}")
         _counts(self, "k")
         _counts(self, "max_level", minimum=0)
         _positive(self, "radius_s", "radius_g")

@@ -26,6 +26,7 @@ class LazyPolicy:
     values: jax.Array  # [N] y_j = r_j + gamma (1 - done_j) V(s'_j, g_j), from the trained V
     action_length: jax.Array  # c (a float32 scalar)
     action_set: str = struct.field(pytree_node=False, default="ball")
+    features: Callable | None = struct.field(pytree_node=False, default=None)  # phi(s): the search space
 
 
 def policy_index(data_s, data_g, *, k: int, radius_s: float, radius_g: float, growth: float,
@@ -76,7 +77,8 @@ def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):
     """Greedy actions (Eq. 9) for a batch of states ``s[B, d_s]``, goals ``g[B]`` /
     ``g[B, d_g]`` / ``None`` (as the dataset's).
 
-    For each query: its neighbourhood in the dataset, the local fit
+    For each query: its neighbourhood in the dataset (distances between ``policy.features``
+    of the states, if the policy has a feature map), the local fit
     ``y_j ~ alpha + beta.a_j`` (Eq. 5-6), and the maximiser of ``beta . a`` over the
     action set (:func:`lazyq_jax.local_model.greedy_action`).  Pure and jittable (use
     it inside ``lax.scan`` rollouts).  A query with no neighbourhood within
@@ -84,10 +86,11 @@ def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):
 
     Returns ``(actions[B, n_a], beta[B, n_a], found[B])``.
     """
+    x = s if policy.features is None else policy.features(s)
     if isinstance(policy.index, PolicyIndex):
-        nb = query_policy(policy.index, key, s, g)
+        nb = query_policy(policy.index, key, x, g)
     else:
-        nb = query_neighbours(policy.index, key, s, g)
+        nb = query_neighbours(policy.index, key, x, g)
     rows = jnp.maximum(nb.idx, 0)
     _, beta = fit_local_linear(policy.actions[rows], policy.values[rows])
     action = greedy_action(beta, policy.action_length, policy.action_set)

@@ -51,6 +51,8 @@ class Problem:
       probes: ``(s[P, d_s], g)``: states whose values lazy Q logs every cycle.
       search_bounds: fixed bounds ``(x_min, y_min, x_max, y_max)`` of the neighbour
         grid for 2-D states with angle goals (so that seeds share compiled searches).
+      features: ``phi(s [..., d_s]) -> [..., m]``, where lazy Q measures the state
+        distance of its neighbourhoods (None: the state itself).
     """
 
     action_length: float = 0.1
@@ -58,6 +60,7 @@ class Problem:
     state_scale: float | tuple[float, ...] = 1.0
     probes: tuple | None = None
     search_bounds: tuple[float, float, float, float] | None = None
+    features: Callable | None = None
 
     def __post_init__(self) -> None:
         c = self.action_length

@@ -35,7 +35,7 @@ import optax
 
 from lazyq_jax.agents.base import Problem, Spec
 from lazyq_jax.agents.common import (Baseline, BaselineConfig, apply_ensemble, apply_mlp,
-                                     check_range, init_ensemble, log_likelihood, mask_of, mlp,
+                                     check, check_range, init_ensemble, log_likelihood, mask_of, mlp,
                                      observe, observe_action, polyak, squash)
 from lazyq_jax.types import Transitions
 
@@ -50,6 +50,7 @@ class IQLConfig(BaselineConfig):
     expectile: float = 0.9
     temperature: float = 3.0
     max_weight: float = 100.0
+    normalize_advantages: bool = True
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -57,6 +58,9 @@ class IQLConfig(BaselineConfig):
         check_range(self, "expectile", 0.0, 1.0, lo_open=True, hi_open=True)
         check_range(self, "temperature", 0.0, math.inf)
         check_range(self, "max_weight", 0.0, math.inf, lo_open=True)
+        check(isinstance(self.normalize_advantages, bool),
+              f"IQLConfig.normalize_advantages must be True or False, got "
+              f"{self.normalize_advantages!r}")
 
 
 class IQL(Baseline):
@@ -97,12 +101,15 @@ class IQL(Baseline):
         critic_loss = jnp.sum(jnp.mean((q - y) ** 2, axis=1))
 
         adv = q_t - jax.lax.stop_gradient(v)
+        if cfg.normalize_advantages:  # in units of their minibatch standard deviation
+            adv = adv / (jnp.std(adv) + 1e-6)
         weight = jnp.minimum(jnp.exp(cfg.temperature * adv), cfg.max_weight)
         log_prob = log_likelihood(problem, self.pi(params["actor"], b.s, b.g), b.a)
         actor_loss = -jnp.mean(weight * log_prob)
         metrics = {"value_loss": value_loss, "critic_loss": critic_loss,
                    "actor_loss": actor_loss, "q_mean": jnp.mean(q_t),
-                   "adv_std": jnp.std(adv), "weight_mean": jnp.mean(weight)}
+                   "adv_std": jnp.std(q_t - v), "weight_mean": jnp.mean(weight),
+                   "weight_max": jnp.max(weight)}
         return value_loss + critic_loss + actor_loss, metrics
 
     def update(self, model, batch, key, step):

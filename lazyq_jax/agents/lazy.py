@@ -80,18 +80,25 @@ class LazyAgent(Agent):
         if self.config.train.resample_neighbours and block > 0:
             key = jax.random.fold_in(purpose_key(seed, "resample"), block)
         nc, n = self.config.neighbours, int(n_valid)
-        if is_grid_space(data.s, data.g):
-            index = build_index(np.asarray(data.s[:n]), np.asarray(data.g[:n]), k=nc.k,
+        x = self.search_space(data.s)
+        if is_grid_space(x, data.g):
+            index = build_index(np.asarray(x[:n]), np.asarray(data.g[:n]), k=nc.k,
                                 radius_s=nc.radius_s, radius_g=nc.radius_g, growth=nc.growth,
                                 max_level=0, capacity=data.size, bounds=self.problem.search_bounds)
-            nb = search_all(index, key, data.s, data.g, mesh=self.mesh, n_queries=n)
+            nb = search_all(index, key, x, data.g, mesh=self.mesh, n_queries=n)
             return Neighbourhoods(nb.idx, nb.level)
         g = None if data.g is None else data.g[:n]
-        nb = find_neighbours(key, data.s[:n], g, data.s[:n], g, k=nc.k, radius_s=nc.radius_s,
+        nb = find_neighbours(key, x[:n], g, x[:n], g, k=nc.k, radius_s=nc.radius_s,
                              radius_g=nc.radius_g, growth=nc.growth)
         pad = data.size - n
         return Neighbourhoods(jnp.concatenate([nb.idx, jnp.zeros((pad, nc.k), jnp.int32)]),
                               jnp.concatenate([nb.level, jnp.zeros((pad,), jnp.int32)]))
+
+    def search_space(self, s):
+        """Where the state distance of the neighbourhoods is measured: ``problem.features(s)``
+        (the task's feature map, computed in float32 on the host's device), else ``s``."""
+        phi = self.problem.features
+        return s if phi is None else np.asarray(jax.jit(phi)(jnp.asarray(s, jnp.float32)))
 
     def run_block(self, state, data: Transitions, aux: Neighbourhoods, n_valid=None):
         state, metrics = self.trainer.run_cycle(state, data, aux.idx, n_valid)
@@ -121,7 +128,7 @@ class LazyAgent(Agent):
         (stacked over the seeds: one layout and the largest capacities), and the
         bootstrapped values ``r + gamma (1 - done) V(s', g)`` of its trained V."""
         nc, n_seeds = self.config.neighbours, int(np.shape(n_valid)[0])
-        indices = [policy_index(np.asarray(data.s[i]), None if data.g is None else np.asarray(data.g[i]),
+        indices = [policy_index(self.search_space(data.s[i]), None if data.g is None else np.asarray(data.g[i]),
                                 k=nc.k, radius_s=nc.radius_s, radius_g=nc.radius_g, growth=nc.growth,
                                 max_level=nc.max_level, n_valid=int(n_valid[i]),
                                 bounds=self.problem.search_bounds)
@@ -138,7 +145,7 @@ class LazyAgent(Agent):
         values = over_seeds(lambda st, d: bootstrap_table(self.trainer.value_fn(st), d, gamma),
                             n_seeds)(states, data)
         length = jnp.full(n_seeds, self.problem.action_length, jnp.float32)
-        return LazyPolicy(index, data.a, values, length, self.problem.action_set)
+        return LazyPolicy(index, data.a, values, length, self.problem.action_set, self.problem.features)
 
     def act(self, policy: LazyPolicy):
         return lambda key, s, g: lazy_policy(policy, key, s, g)[0]

@@ -192,10 +192,26 @@ class Task:
                               f"{type(config.collect).__name__} and {type(config.eval).__name__}")
         if config.online.rounds and not self.online:
             raise ConfigError(f"task {self.name!r} has no online data source; set online.rounds=0")
+        self.features(config)
 
     def problem(self, config: Config) -> Problem:
         """What the agents are told besides the data (action set, input scales, ...)."""
         raise NotImplementedError
+
+    def feature_maps(self, config: Config) -> dict[str, Callable | None]:
+        """The spaces lazy Q may measure its neighbourhoods in (``neighbours.features``):
+        ``name -> phi(s [..., d_s]) -> [..., m]``; ``"state"`` (None: the state itself) always."""
+        return {"state": None}
+
+    def features(self, config: Config) -> Callable | None:
+        """The feature map ``config.neighbours.features`` names (:class:`ConfigError` listing
+        the task's maps if it has none of that name)."""
+        maps = self.feature_maps(config)
+        name = config.neighbours.features
+        if name not in maps:
+            raise ConfigError(f"task {self.name!r} has no feature map {name!r} for neighbours.features; "
+                              f"its maps: {', '.join(maps)}")
+        return maps[name]
 
     # --- data
     def collect(self, key: jax.Array, config: Config, *, mesh: Mesh | None = None,

@@ -23,8 +23,8 @@ from lazyq_jax.config import Config
 from lazyq_jax.tasks.arm import plots
 from lazyq_jax.tasks.arm.config import ArmCollectConfig, ArmEvalConfig, check, presets
 from lazyq_jax.tasks.arm.env import ArmConfig, ArmEnv, ArmState, fingertip_xy, sample_arm_start
-from lazyq_jax.tasks.arm.episodes import (collect_arm, disk_at_origin, explore_round, protocol_a,
-                                          protocol_b, state_scale)
+from lazyq_jax.tasks.arm.episodes import (collect_arm, disk_at_origin, explore_round,
+                                          fingertip_features, protocol_a, protocol_b, state_scale)
 from lazyq_jax.tasks.base import Evaluation, Task, run_protocol, seed_acts
 from lazyq_jax.tasks.push import PushTask
 from lazyq_jax.tasks.push.collect import dataset_summary
@@ -58,9 +58,13 @@ class ArmTask(Task):
         super().check(config)
         check(config)
 
+    def feature_maps(self, config: Config) -> dict:
+        return {"state": None,
+                "fingertip": fingertip_features(config.collect, config.neighbours.feature_weight)}
+
     def problem(self, config: Config) -> Problem:
         return Problem(action_length=config.collect.arm.action_length, action_set="ball",
-                       state_scale=state_scale(config.collect))
+                       state_scale=state_scale(config.collect), features=self.features(config))
 
     def collect(self, key, config: Config, *, mesh: Mesh | None = None, progress: bool = True
                 ) -> Transitions:

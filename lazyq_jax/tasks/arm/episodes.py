@@ -37,6 +37,22 @@ def observer(config: ArmCollectConfig):
     return lambda state: jnp.concatenate([state.q, config.disk_scale * state.disk_xy], -1)
 
 
+def fingertip_features(config: ArmCollectConfig, w: float):
+    """``phi(s) -> (fingertip - disk, w q)`` (``[..., 5]``; ``[..., 2]`` for ``w = 0``): the
+    fingertip by forward kinematics, relative to the disk (the origin, or the disk of the
+    state), and the joint angles, weighted, which tell the redundant arm's
+    configurations (and so their Jacobians) apart."""
+    arm = config.arm
+
+    def phi(s):
+        tip = fingertip_xy(s[..., :3], arm)
+        if config.disk_in_state:
+            tip = tip - s[..., 3:5] / config.disk_scale
+        return tip if w == 0 else jnp.concatenate([tip, w * s[..., :3]], -1)
+
+    return phi
+
+
 def state_scale(config: ArmCollectConfig) -> tuple[float, ...]:
     """Per-dimension input scale of the networks: the joint limits' half-ranges (and the
     disk coordinates' range in state units)."""

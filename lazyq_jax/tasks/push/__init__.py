@@ -77,7 +77,7 @@ class PushTask(Task):
         probes = tuple(np.asarray(x, np.float32) for x in PROBES)
         return Problem(action_length=config.collect.push.action_length, action_set="ball",
                        state_scale=config.collect.start_range, probes=probes,
-                       search_bounds=self.search_bounds(config))
+                       search_bounds=self.search_bounds(config), features=self.features(config))
 
     def collect(self, key, config: Config, *, mesh: Mesh | None = None, progress: bool = True
                 ) -> Transitions:
