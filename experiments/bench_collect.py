@@ -30,10 +30,10 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from lazyq_jax.config import FORGIVING_PUSH, CollectConfig, PushConfig
-from lazyq_jax.data import _episode_keys, collect, make_episode_fn
-from lazyq_jax.env import PushEnv
-from lazyq_jax.env.native import native_push
+from lazyq_jax.tasks.push import FORGIVING_PUSH, CollectConfig, PushConfig, PushEnv
+from lazyq_jax.data import _episode_keys
+from lazyq_jax.tasks.push.collect import collect, make_episode_fn
+from lazyq_jax.tasks.push.native import native_push
 
 
 def pushes(rng, batch, contact):

@@ -5,7 +5,7 @@ before JAX starts) runs the phases of ``make train`` on the same config and seed
 
 * collection: :func:`lazyq_jax.collect` over the mesh (first call incl. compile, then
   the same collection again: steady state, the compiled kernel is cached);
-* neighbour search: :func:`lazyq_jax.pipeline.neighbours_for` on that dataset
+* neighbour search: lazy Q's ``prepare`` (the neighbourhoods) on that dataset
   (first, then steady);
 * training: one jitted cycle of :func:`lazyq_jax.train.make_train` (``epochs``
   epochs + targets; first incl. compile, then the median of ``--cycles`` more).
@@ -39,14 +39,16 @@ def worker(n_dev: int, preset: str, cycles: int, out: str) -> None:
     import jax
     import numpy as np
 
-    from lazyq_jax.config import ParallelConfig, preset as get_preset
-    from lazyq_jax.data import collect
-    from lazyq_jax.parallel import put, replicated
-    from lazyq_jax.pipeline import mesh_for, neighbours_for, run_keys
-    from lazyq_jax.train import make_train_for
+    from lazyq_jax import agents, tasks
+    from lazyq_jax.config import ParallelConfig
+    from lazyq_jax.keys import purpose_key
+    from lazyq_jax.parallel import make_mesh, put, replicated
 
-    config = dataclasses.replace(get_preset(preset), parallel=ParallelConfig(devices=n_dev))
-    mesh = mesh_for(config)
+    task = tasks.get("push")
+    config = dataclasses.replace(tasks.preset("push", preset), parallel=ParallelConfig(devices=n_dev))
+    mesh = make_mesh(config.parallel)
+    agent = agents.make("lazy", agents.LazyConfig(train=config.train, neighbours=config.neighbours),
+                        problem=task.problem(config), mesh=mesh)
     times = {}
 
     def timed(name, fn, repeats=1):
@@ -61,13 +63,12 @@ def worker(n_dev: int, preset: str, cycles: int, out: str) -> None:
         times[f"{name}_steady"] = statistics.median(steady)
         return result
 
-    keys = run_keys(config)
-    data = timed("collect", lambda: collect(keys["collect"], config.collect, mesh=mesh,
-                                            progress=False))
-    idx = timed("search", lambda: neighbours_for(config, data, mesh=mesh))
-    trainer = make_train_for(config, mesh=mesh)
+    data = timed("collect", lambda: task.collect(purpose_key(0, "collect"), config, mesh=mesh,
+                                                 progress=False))
+    idx = timed("search", lambda: agent.prepare(0, data, data.size, 0).idx)
+    trainer = agent.trainer
     data_r = put(data, replicated(mesh))
-    state0 = put(trainer.init(keys["train"]), replicated(mesh))
+    state0 = put(trainer.init(purpose_key(0, "train"), data), replicated(mesh))
     run_cycle = jax.jit(trainer.run_cycle)
     timed("train_cycle", lambda: run_cycle(state0, data_r, idx)[0].params, repeats=cycles)
     np.savez(out, s=np.asarray(data.s), s_next=np.asarray(data.s_next), r=np.asarray(data.r),

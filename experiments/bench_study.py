@@ -9,7 +9,7 @@ peak resident memory (from ``wait4``) and the phases' seconds from the runs' own
 timing files.  The S-seed study directory is a complete study: the README's
 paper-world table is read from it.
 
-    .venv/bin/python experiments/bench_study.py [--seeds 8] [--preset paper]
+    .venv/bin/python experiments/bench_study.py [--seeds 8] [--task push] [--preset paper]
         [--one-dir runs/bench_train_1] [--many-dir runs/study_paper] [--set FIELD=VALUE ...]
 """
 
@@ -39,23 +39,21 @@ def run(args: list[str]) -> tuple[float, float]:
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, default=8)
+    ap.add_argument("--task", default="push")
     ap.add_argument("--preset", default="paper")
     ap.add_argument("--one-dir", type=Path, default=Path("runs/bench_train_1"))
     ap.add_argument("--many-dir", type=Path, default=Path("runs/study_paper"))
     ap.add_argument("--set", action="append", default=[])
     args = ap.parse_args()
     sets = [x for s in args.set for x in ("--set", s)]
+    common = ["--task", args.task, "--preset", args.preset, "--overwrite", "--no-progress", *sets]
+    phases = lambda d: {**json.loads((d / "timings.json").read_text()),
+                        **json.loads((d / "lazy" / "timings.json").read_text())}
     rows = []
-    wall, rss = run(["train", "--preset", args.preset, "--run-dir", str(args.one_dir), "--overwrite",
-                     "--no-progress", *sets])
-    timings = json.loads((args.one_dir / "timings.json").read_text())
-    timings["eval_s"] = json.loads((args.one_dir / "eval" / "results.json").read_text())["seconds"]
-    rows.append((1, wall, rss, timings))
-    wall, rss = run(["study", "--preset", args.preset, "--seeds", str(args.seeds), "--run-dir",
-                     str(args.many_dir), "--overwrite", "--no-progress", *sets])
-    timings = {**json.loads((args.many_dir / "timings.json").read_text()),
-               **json.loads((args.many_dir / "lazy" / "timings.json").read_text())}
-    rows.append((args.seeds, wall, rss, timings))
+    wall, rss = run(["train", "--run-dir", str(args.one_dir), *common])
+    rows.append((1, wall, rss, phases(args.one_dir)))
+    wall, rss = run(["study", "--seeds", str(args.seeds), "--run-dir", str(args.many_dir), *common])
+    rows.append((args.seeds, wall, rss, phases(args.many_dir)))
     print(f"\n{'seeds':>5} | {'wall s':>7} {'per seed':>8} | {'peak RSS':>8} | phases (s)")
     for seeds, wall, rss, timings in rows:
         phases = ", ".join(f"{k} {v}" for k, v in timings.items())

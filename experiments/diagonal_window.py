@@ -17,8 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lazyq_jax.config import PushConfig
-from lazyq_jax.env import PushEnv
+from lazyq_jax.tasks.push import PushConfig, PushEnv
 
 
 def main():

@@ -24,7 +24,8 @@ from lazyq_jax.tasks.arm import plots
 from lazyq_jax.tasks.arm.config import ArmCollectConfig, ArmEvalConfig, check, presets
 from lazyq_jax.tasks.arm.env import ArmConfig, ArmEnv, ArmState, fingertip_xy, sample_arm_start
 from lazyq_jax.tasks.arm.episodes import (collect_arm, disk_at_origin, explore_round,
-                                          fingertip_features, protocol_a, protocol_b, state_scale)
+                                          fingertip_features, protocol_a, protocol_b,
+                                          scripted_arm_policy, state_scale)
 from lazyq_jax.tasks.base import Evaluation, Task, run_protocol, seed_acts
 from lazyq_jax.tasks.push import PushTask
 from lazyq_jax.tasks.push.collect import dataset_summary
@@ -107,6 +108,9 @@ class ArmTask(Task):
 
     def seed_rates(self, result: dict) -> dict:
         return direction_seed_rates(result)
+
+    def scripted(self, config: Config) -> Act:
+        return scripted_arm_policy(config.collect)
 
     def figures(self, out_dir: Path, result: dict, rollouts: dict, config: Config,
                 value_fn: Callable | None = None) -> list[Path]:

@@ -26,6 +26,7 @@ from lazyq_jax.tasks.push.explore import episode_counts
 from lazyq_jax.tasks.push.collect import repeated_moves
 from lazyq_jax.tasks.push.protocols import direction_outcome, directions, long_horizon
 from lazyq_jax.tasks.push.reward import disk_moved, push_reward
+from lazyq_jax.tasks.push.scripted import scripted_push_policy
 from lazyq_jax.types import Transitions
 
 
@@ -205,6 +206,29 @@ def explore_round(act: Act, key: jax.Array, config: Config) -> dict:
                          cos_threshold=arm.push.cos_threshold)
     return {"s": s, "a": a, "s_next": s_next, "moved": moved, "g": labels, "r": reward,
             "goal": goals, "counts": episode_counts(delta, moved, goals, arm.push.cos_threshold)}
+
+
+def scripted_arm_policy(config: ArmCollectConfig, damping: float = 1e-4):
+    """The push task's scripted controller (:func:`lazyq_jax.tasks.push.scripted.scripted_push_policy`)
+    moved to joint space: the fingertip direction it chooses for the fingertip relative to
+    the disk, turned into a joint move by the damped pseudo-inverse of the arm's Jacobian
+    ``J^T (J J^T + damping I)^-1`` and scaled to ``action_length``.  It knows the physics and
+    the kinematics and learns nothing: an upper reference for the arm."""
+    arm = config.arm
+    finger = scripted_push_policy(arm.push)
+    jacobian = jax.vmap(jax.jacfwd(lambda q: fingertip_xy(q, arm)))
+
+    def act(key, s, g):
+        q = s[:, :3]
+        disk = s[:, 3:5] / config.disk_scale if config.disk_in_state else 0.0
+        direction = finger(key, fingertip_xy(q, arm) - disk, g)  # [B, 2]
+        jac = jacobian(q)  # [B, 2, 3]
+        gram = jac @ jnp.swapaxes(jac, 1, 2) + damping * jnp.eye(2)
+        dq = jnp.einsum("bij,bj->bi", jnp.swapaxes(jac, 1, 2), jnp.linalg.solve(gram, direction[..., None])[..., 0])
+        norm = jnp.linalg.norm(dq, axis=-1, keepdims=True)
+        return arm.action_length * dq / jnp.maximum(norm, 1e-12)
+
+    return act
 
 
 def disk_at_origin(collect: ArmCollectConfig):
