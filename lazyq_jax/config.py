@@ -59,8 +59,11 @@ class NeighbourConfig:
     defines B(s, g) by a distance in state space, and nothing in Eq. 4-9 requires it to
     be the network's input.  ``radius_s`` is in the units of that space.
     ``feature_weight``: a parameter of the task's feature map (the arm's ``"fingertip"``:
-    the weight of the joint angles beside the fingertip).  The tasks set the radii of
-    their own spaces (e.g. radians in joint space)."""
+    the weight of the joint angles beside the fingertip).  ``local_model``: ``"action"``
+    (Eq. 4-6: ``alpha + beta . a`` over each neighbourhood) or ``"action+state"`` (also
+    each neighbour's state offset from the centre as a covariate: ``alpha + beta . a +
+    gamma . (s_j - s)``).  The tasks set the radii of their own spaces (e.g. radians in
+    joint space)."""
 
     k: int = 20
     radius_s: float = 0.06
@@ -69,6 +72,7 @@ class NeighbourConfig:
     max_level: int = 5
     features: str = "state"
     feature_weight: float = 0.25
+    local_model: str = "action"
 
     def __post_init__(self) -> None:
         _check(isinstance(self.features, str) and bool(self.features),
@@ -76,6 +80,8 @@ class NeighbourConfig:
         _check(isinstance(self.feature_weight, (int, float)) and not isinstance(self.feature_weight, bool)
                and 0 <= self.feature_weight < float("inf"),
                f"NeighbourConfig.feature_weight must be a number >= 0, got {self.feature_weight!r}")
+        _check(self.local_model in ("action", "action+state"),
+               f"NeighbourConfig.local_model must be 'action' or 'action+state', got {self.local_model!r}")
         _counts(self, "k")
         _counts(self, "max_level", minimum=0)
         _positive(self, "radius_s", "radius_g")

@@ -58,12 +58,18 @@ def _regularised_inverse(cov):
     return jnp.linalg.inv(reg) / scale
 
 
-def fit_local_linear(actions, values, weights=None):
+def fit_local_linear(actions, values, weights=None, offsets=None):
     """Least squares ``values ~ alpha + beta . a`` per neighbourhood (Eq. 5-6).
 
     Args:
       actions: ``[..., k, n_a]``; values: ``[..., k]``; weights: optional
         ``[..., k]`` non-negative (e.g. a 0/1 mask), weighted least squares.
+      offsets: optional ``[..., k, m]``: each neighbour's state offset from the
+        neighbourhood's centre (the query).  Then the model is ``values ~ alpha + beta . a
+        + gamma . offset``: the neighbours' values differ by where they start as well as
+        by their action, and the offset term absorbs the first of these instead of
+        letting it bias or blur ``beta`` (a local model in state and action, §IV-A's
+        "other local function approximations"); ``alpha`` is the value at the centre.
     Returns:
       ``(alpha [...], beta [..., n_a])``.
     """
@@ -71,6 +77,13 @@ def fit_local_linear(actions, values, weights=None):
     values = jnp.asarray(values, jnp.float32)
     if actions.ndim < 2 or values.shape != actions.shape[:-1]:
         raise ValueError(f"need actions [..., k, n_a] and values [..., k]; got {actions.shape}, {values.shape}")
+    if offsets is not None:
+        offsets = jnp.asarray(offsets, jnp.float32)
+        if offsets.shape[:-1] != actions.shape[:-1]:
+            raise ValueError(f"offsets [..., k, m] must match actions {actions.shape[:-1]}, got {offsets.shape}")
+        n_a = actions.shape[-1]
+        alpha, coef = fit_local_linear(jnp.concatenate([actions, offsets], -1), values, weights)
+        return alpha, coef[..., :n_a]
     w, sw, a_mean, centred = _centred(actions, weights)
     v_mean = (w * values).sum(-1) / sw
     wa = centred * w[..., None]

@@ -27,6 +27,7 @@ class LazyPolicy:
     action_length: jax.Array  # c (a float32 scalar)
     action_set: str = struct.field(pytree_node=False, default="ball")
     features: Callable | None = struct.field(pytree_node=False, default=None)  # phi(s): the search space
+    states: jax.Array | None = None  # [N, d_s] the dataset's states, for state-offset local models
 
 
 def policy_index(data_s, data_g, *, k: int, radius_s: float, radius_g: float, growth: float,
@@ -92,7 +93,8 @@ def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):
     else:
         nb = query_neighbours(policy.index, key, x, g)
     rows = jnp.maximum(nb.idx, 0)
-    _, beta = fit_local_linear(policy.actions[rows], policy.values[rows])
+    offsets = None if policy.states is None else policy.states[rows] - s[:, None]
+    _, beta = fit_local_linear(policy.actions[rows], policy.values[rows], offsets=offsets)
     action = greedy_action(beta, policy.action_length, policy.action_set)
     found = nb.level >= 0
     return jnp.where(found[:, None], action, 0.0), beta, found

@@ -141,22 +141,27 @@ def bootstrap_table(v: ValueFn, data: Transitions, gamma, batch_size=65536,
 
 
 def local_fits(v: ValueFn, data: Transitions, neighbours_idx, *, gamma, projection=None,
-               batch_size=65536, mesh: Mesh | None = None):
+               batch_size=65536, mesh: Mesh | None = None, state_offsets: bool = False):
     """``(alpha [N], beta [N, n_a], y_nb [N, k])``: Eq. (5)-(6) for every transition's
     neighbourhood with ``y = r + gamma (1 - done) v(s', g)``; ``y_nb = y[neighbours_idx]``.
+    ``state_offsets``: fit ``alpha + beta . a + gamma' . (s_j - s_i)`` instead
+    (:func:`lazyq_jax.local_model.fit_local_linear`'s ``offsets``).
 
     With a ``mesh`` the value table is computed split over the devices and then
     replicated, and the fits are split by rows (the outputs are row-sharded).
     """
     idx = jnp.asarray(neighbours_idx)
     n, pad = idx.shape[0], -idx.shape[0] % mesh_size(mesh)
-    if pad:  # rows split evenly over the devices (row 0 repeated, dropped below)
+    rows = jnp.arange(n + pad) % n  # padding repeats row 0 (dropped below)
+    if pad:  # rows split evenly over the devices
         idx = jnp.concatenate([idx, jnp.broadcast_to(idx[:1], (pad, idx.shape[1]))])
         if projection is not None:
             projection = jnp.concatenate([projection, jnp.repeat(projection[:1], pad, 0)])
     idx = constrain(idx, sharded(mesh))
     y_nb = bootstrap_table(v, data, gamma, batch_size, mesh)[idx]
-    if projection is None:
+    if state_offsets:
+        alpha, beta = fit_local_linear(data.a[idx], y_nb, offsets=data.s[idx] - data.s[rows][:, None])
+    elif projection is None:
         alpha, beta = fit_local_linear(data.a[idx], y_nb)
     else:
         alpha, beta = apply_projection(projection, y_nb)

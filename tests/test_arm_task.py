@@ -3,10 +3,14 @@ long-horizon protocol."""
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 import pytest
 
-from lazyq_jax import tasks
+from lazyq_jax import agents, tasks
+from lazyq_jax.agents import Problem
+from lazyq_jax.neighbours.nd import membership_level_reference
+from lazyq_jax.types import Transitions
 from lazyq_jax.config import ConfigError, override
 from lazyq_jax.tasks.arm import ArmCollectConfig, ArmConfig, ArmEnv, ArmEvalConfig, collect_arm, fingertip_xy
 from lazyq_jax.tasks.arm.episodes import protocol_b
@@ -82,3 +86,42 @@ def test_arm_long_horizon_task():
     reached = np.linalg.norm(target - final, axis=1) < cfg.success_radius
     off = np.abs(final).max(1) > ARM.push.table_half_size
     assert ((ro.outcome == CORRECT) == reached).all() and ((ro.outcome == WRONG) == (off & ~reached)).all()
+
+
+def test_the_fingertip_feature_map_and_the_search_in_it():
+    """The arm's ``"fingertip"`` features are the fingertip by MuJoCo's own kinematics (minus
+    the disk) and the weighted joint angles; lazy Q's neighbourhoods are then exactly those
+    of the mapped points (the brute-force membership levels); an identity map gives the
+    neighbourhoods of the states themselves bitwise."""
+    config = override(tasks.preset("arm-long", "smoke"), ["neighbours.features=fingertip",
+                                                          "neighbours.feature_weight=0.5",
+                                                          "neighbours.radius_s=0.08", "neighbours.k=8"])
+    phi = tasks.get("arm-long").features(config)
+    rng = np.random.default_rng(0)
+    q = rng.uniform(ARM.joint_lower, ARM.joint_upper, (300, 3)).astype(np.float32)
+    disk = rng.uniform(-0.4, 0.4, (300, 2)).astype(np.float32)
+    s = np.concatenate([q, 1.2 * disk], 1)
+    x = np.asarray(phi(jnp.asarray(s)))
+    env = ArmEnv(ARM)
+    model, data = env.mj_model, mujoco.MjData(env.mj_model)
+    site = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, "tip")
+    for i in range(0, 300, 37):
+        data.qpos[2:5] = q[i]
+        mujoco.mj_kinematics(model, data)
+        np.testing.assert_allclose(x[i, :2], data.site_xpos[site, :2] - disk[i], atol=1e-5)
+    np.testing.assert_allclose(x[:, 2:], 0.5 * q, rtol=1e-6)
+    g = rng.uniform(-np.pi, np.pi, 300).astype(np.float32)
+    trans = Transitions(s=jnp.asarray(s), a=jnp.zeros((300, 3)), s_next=jnp.asarray(s), r=jnp.zeros(300),
+                        g=jnp.asarray(g), done=jnp.zeros(300, bool))
+    lazy_cfg = agents.LazyConfig(train=config.train, neighbours=config.neighbours)
+    agent = agents.make("lazy", lazy_cfg, problem=Problem(0.12, features=phi))
+    nb = agent.prepare(0, trans, 300, 0)
+    lam = membership_level_reference(x, g, x, g, radius_s=0.08, radius_g=config.neighbours.radius_g)
+    level = np.sort(lam, axis=1)[:, 7]  # the k-th smallest entry level (k = 8)
+    np.testing.assert_array_equal(np.asarray(nb.level), level)
+    chosen = np.take_along_axis(lam, np.asarray(nb.idx), axis=1)
+    assert np.all(chosen <= level[:, None])  # every sampled neighbour is a member
+    # identity features: the states' own neighbourhoods, bitwise
+    plain = agents.make("lazy", lazy_cfg, problem=Problem(0.12)).prepare(0, trans, 300, 0)
+    same = agents.make("lazy", lazy_cfg, problem=Problem(0.12, features=lambda v: v)).prepare(0, trans, 300, 0)
+    np.testing.assert_array_equal(np.asarray(plain.idx), np.asarray(same.idx))

@@ -177,3 +177,23 @@ def test_greedy_action_and_max_against_a_grid_of_actions(action_set):
         assert np.all(np.isin(a, np.float32([-c, 0.0, c]))) and np.all(a[:5, 1] == 0.0)
     else:
         np.testing.assert_allclose(np.linalg.norm(a, axis=1), c, rtol=1e-6)
+
+
+def test_state_offsets_as_covariates_match_lstsq():
+    """With each neighbour's state offset as a covariate the fit is the least squares of
+    ``alpha + beta . a + gamma . offset`` (lstsq on the joint regressors); values that
+    depend on the offsets bias the action-only fit's beta but not this one's."""
+    rng = np.random.default_rng(3)
+    a = rng.uniform(-0.12, 0.12, (50, 20, 3)).astype(np.float32)
+    d = rng.uniform(-0.12, 0.12, (50, 20, 3)).astype(np.float32)
+    beta, gamma = rng.normal(size=(50, 3)), rng.normal(size=(50, 3))
+    v = (0.5 + np.einsum("nka,na->nk", a, beta) + np.einsum("nka,na->nk", d, gamma)
+         + 1e-3 * rng.normal(size=(50, 20))).astype(np.float32)
+    alpha_ref, coef_ref = lstsq(np.concatenate([a, d], -1), v)
+    alpha, b = fit_local_linear(a, v, offsets=d)
+    np.testing.assert_allclose(alpha, alpha_ref, atol=1e-4)
+    np.testing.assert_allclose(b, coef_ref[:, :3], atol=1e-3 * np.abs(coef_ref).max())
+    _, b_plain = fit_local_linear(a, v)
+    assert np.abs(b_plain - beta).max() > 10 * np.abs(b - beta).max()
+    with pytest.raises(ValueError, match="offsets"):
+        fit_local_linear(a, v, offsets=d[:, :5])

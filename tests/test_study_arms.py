@@ -21,10 +21,14 @@ from lazyq_jax.config import override
 from lazyq_jax.run import load_policy, load_run, run
 from lazyq_jax.run.sources import static_data
 
-METHODS = "lazy,iql,td3bc,dqn,naf,bc,random"  # the arm has no scripted controller
+METHODS = "lazy,iql,td3bc,dqn,naf,bc,random,scripted"
 TINY = ["collect.n_starts=120", "collect.n_goals=6", "train.cycles=2", "train.epochs=1",
         "train.batch_size=64", "train.width=16", "eval.episodes_per_direction=2", "eval.max_steps=6",
         "eval.long_rollouts=2", "eval.long_max_steps=6", "neighbours.k=8"]
+# arm-long's lazy Q measures its neighbourhoods in the fingertip's space and fits the state
+# offsets too (every option the arm's levers use, through the CLI, the resume and the reloads)
+LONG = ["neighbours.features=fingertip", "neighbours.radius_s=0.08", "neighbours.local_model=action+state"]
+EXTRA = {"arm": [], "arm-long": LONG}
 
 
 def cli(*args, timeout=900):
@@ -41,7 +45,7 @@ def studies(tmp_path_factory):
     root = tmp_path_factory.mktemp("arms")
     for task in ("arm", "arm-long"):
         out = cli("study", "--task", task, "--preset", "smoke", "--seeds", "1", "--methods", METHODS,
-                  "--run-dir", str(root / task), "--no-progress", *sets(TINY))
+                  "--run-dir", str(root / task), "--no-progress", *sets(TINY + EXTRA[task]))
         assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
     return root
 
@@ -97,7 +101,7 @@ def test_static_resume_equals_the_uninterrupted_run(studies, tmp_path):
     src = studies / "arm-long"
     copy = tmp_path / "cut"
     shutil.copytree(src, copy)
-    config = override(tasks.preset("arm-long", "smoke"), TINY)
+    config = override(tasks.preset("arm-long", "smoke"), TINY + LONG)
     shutil.rmtree(copy / "lazy" / "checkpoints" / "2")
     td3 = copy / "td3bc" / "checkpoints"
     victim = max((p for p in (td3 / "10" / "state").rglob("*") if p.is_file()), key=lambda p: p.stat().st_size)
