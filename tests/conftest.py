@@ -1,18 +1,30 @@
 """Shared fixtures: one PushEnv and one compiled batched push for the whole session.
 
-MJX compiles take seconds on CPU, so tests pad their pushes to a fixed batch.
+MJX compiles take seconds on CPU, so tests pad their pushes to a fixed batch.  The suite's
+processes (pytest-xdist's workers and the CLI runs they start) share one persistent
+compilation cache (``LAZYQ_COMPILE_CACHE``, by default a directory in the system's
+temporary directory): a program another process already compiled is read back, not
+compiled again.  It changes no result (the cache key is the whole program).
 """
+
+import os
+import tempfile
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from lazyq_jax.parallel import enable_compilation_cache
 from lazyq_jax.run import run
 from lazyq_jax.config import Config, TrainConfig
 from lazyq_jax.tasks.push import FORGIVING_PUSH, CollectConfig, EvalConfig, PushConfig, PushEnv
 
 PUSH_BATCH = 16
+
+os.environ.setdefault("LAZYQ_COMPILE_CACHE",
+                      os.path.join(tempfile.gettempdir(), f"lazyq-jax-test-cache-{os.getuid()}"))
+enable_compilation_cache()  # the CLI runs of the tests inherit the variable
 
 
 @pytest.fixture(scope="session")

@@ -80,7 +80,7 @@ def test_two_processes_match_one_process(tmp_path):
     args = [sys.executable, "-m", "lazyq_jax", "train", "--preset", "smoke", "--no-eval",
             "--no-progress", "--set", "collect.n_starts=120", "--set", "train.cycles=1",
             "--set", "train.epochs=1", "--set", "train.batch_size=8192"]
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env = {**{k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}, "LAZYQ_COMPILE_CACHE": "off"}
     port = _free_port()
     procs = [subprocess.Popen(args + ["--run-dir", str(tmp_path / "multi")], stdout=subprocess.PIPE,
                               stderr=subprocess.STDOUT, text=True,

@@ -41,7 +41,7 @@ CONFIG = override(tasks.preset("push", "smoke"), TINY)
 
 def cli(*args, timeout=900):
     return subprocess.run([sys.executable, "-m", "lazyq_jax", *args], capture_output=True,
-                          text=True, timeout=timeout, env={**os.environ, "LAZYQ_COMPILE_CACHE": "off"})
+                          text=True, timeout=timeout)
 
 
 def sets(assignments):

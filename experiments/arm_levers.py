@@ -1,0 +1,131 @@
+"""The arm's levers (joint-space control): lazy Q on ``arm`` / ``arm-long`` with one change
+at a time, over seeds, through the runner; one table.
+
+Each variant is a named list of ``--set`` overrides of the task's ``paper`` preset (or of
+its ``online`` preset, for variants named ``online*``), run as ``study --seeds N`` into
+``<out>/<task>/<variant>/``; runs that exist are resumed (nothing is retrained), and
+datasets are shared between variants with the same data (hard links: the runner's cache
+checks what made them).  The table: mean [95 % CI] over the seeds of protocol A's rates
+(and the long-horizon rate for arm-long), the last cycle's fraction of neighbourhoods at
+level 0 and of targets clipped by Eq. (8), training seconds.
+
+    .venv/bin/python experiments/arm_levers.py --task arm --seeds 3 --variants state fingertip
+    .venv/bin/python experiments/arm_levers.py --list
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+from pathlib import Path
+
+from lazyq_jax import tasks
+from lazyq_jax.config import override
+from lazyq_jax.run import run
+from lazyq_jax.stats import format_ci
+
+FINGERTIP = ["neighbours.features=fingertip", "neighbours.radius_s=0.06"]
+VARIANTS = {
+    "state": [],  # the paper's: neighbourhoods in joint space, radius 0.12 rad
+    "state_offsets": ["neighbours.local_model=action+state"],
+    "fingertip": FINGERTIP,  # (fingertip - disk, 0.25 q)
+    "fingertip_w0": FINGERTIP + ["neighbours.feature_weight=0"],
+    "fingertip_w0.5": FINGERTIP + ["neighbours.feature_weight=0.5"],
+    "fingertip_offsets": FINGERTIP + ["neighbours.local_model=action+state"],
+    "state_x2": ["collect.n_starts=10000"],
+    "state_x4": ["collect.n_starts=20000"],
+    "fingertip_x2": FINGERTIP + ["collect.n_starts=10000"],
+    "fingertip_x4": FINGERTIP + ["collect.n_starts=20000"],
+    "fingertip_offsets_x4": FINGERTIP + ["neighbours.local_model=action+state", "collect.n_starts=20000"],
+    "state_k40": ["neighbours.k=40"],
+    "state_offsets_k40": ["neighbours.local_model=action+state", "neighbours.k=40"],
+    "fingertip_move0.06": FINGERTIP + ["collect.arm.action_length=0.06"],
+    "online_fingertip": FINGERTIP,  # the online preset: 2500 random starts, 5 rounds, 20,000 moves
+    "online_state": [],
+}
+
+
+def variant_config(task: str, name: str):
+    base = tasks.preset(task, "online" if name.startswith("online") else "paper")
+    return override(base, VARIANTS[name])
+
+
+def data_store(out: Path, config) -> Path:
+    """Where the datasets of ``config``'s data are kept for other variants."""
+    digest = hashlib.sha256(json.dumps([config.task, str(config.collect)]).encode()).hexdigest()
+    return out / "_data" / digest[:16]
+
+
+def share_data(out: Path, run_dir: Path, config, seeds) -> None:
+    """Hard-link the datasets of an earlier variant with the same data into ``run_dir``."""
+    store = data_store(out, config)
+    for seed in seeds:
+        src, dst = store / str(seed), run_dir / "data" / str(seed)
+        if src.is_dir() and not dst.exists():
+            dst.mkdir(parents=True)
+            for f in src.iterdir():
+                os.link(f, dst / f.name)
+
+
+def keep_data(out: Path, run_dir: Path, config, seeds) -> None:
+    store = data_store(out, config)
+    for seed in seeds:
+        src, dst = run_dir / "data" / str(seed), store / str(seed)
+        if src.is_dir() and not dst.exists():
+            dst.mkdir(parents=True)
+            for f in src.iterdir():
+                if f.suffix in (".npz", ".json") and not f.name.startswith("round_"):
+                    os.link(f, dst / f.name)
+
+
+def last_metrics(run_dir: Path) -> dict:
+    lines = (run_dir / "lazy" / "metrics.jsonl").read_text().splitlines()
+    last = json.loads(lines[-1])
+    mean = lambda key: sum(last[key]) / len(last[key]) if key in last else float("nan")
+    return {"level0": mean("neighbour_level0_fraction"), "clipped": mean("clip_fraction")}
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--task", default="arm", choices=["arm", "arm-long"])
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--first-seed", type=int, default=0)
+    ap.add_argument("--variants", nargs="+", default=["state", "fingertip"])
+    ap.add_argument("--methods", default="lazy")
+    ap.add_argument("--out", type=Path, default=Path("runs/arm_levers"))
+    ap.add_argument("--list", action="store_true")
+    args = ap.parse_args()
+    if args.list:
+        for name, sets in VARIANTS.items():
+            print(f"{name:24} {' '.join(sets) or '(the preset)'}")
+        return
+    seeds = list(range(args.first_seed, args.first_seed + args.seeds))
+    rows = []
+    for name in args.variants:
+        config = variant_config(args.task, name)
+        run_dir = args.out / args.task / name
+        share_data(args.out, run_dir, config, seeds)
+        results = run(config, run_dir, seeds=seeds, methods=args.methods.split(","),
+                      resume=(run_dir / "run.json").exists(), progress=False)
+        keep_data(args.out, run_dir, config, seeds)
+        for method, m in results["methods"].items():
+            rows.append((name, method, m, last_metrics(run_dir) if method == "lazy" else {}))
+        (args.out / args.task / "levers.json").write_text(json.dumps(
+            {f"{n}/{meth}": {"summary": m["summary"], **extra} for n, meth, m, extra in rows}, indent=1))
+    task = tasks.get(args.task)
+    head = [label for _, label in task.rates]
+    print(f"\n{args.task}, seeds {seeds}: mean [95 % CI]")
+    print("| variant | method | " + " | ".join(head) + " | level 0 | clipped | training |")
+    print("|---|---|" + "---|" * len(head) + "---|---|---|")
+    for name, method, m, extra in rows:
+        cells = [format_ci(m["summary"][k]) if k in m["summary"] else "–" for k, _ in task.rates]
+        t = m["timings"].get("train_s")
+        print(f"| {name} | {method} | " + " | ".join(cells)
+              + f" | {extra.get('level0', float('nan')):.1%} | {extra.get('clipped', float('nan')):.1%} | "
+              + (f"{t:.0f} s |" if t else "– |"))
+
+
+if __name__ == "__main__":
+    main()
