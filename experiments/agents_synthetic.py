@@ -10,8 +10,8 @@ Tasks (:mod:`lazyq_jax.agents.reference`; 20,000 rows each, data seed 0, agent k
 Reward 1 and done when ``s' . u > 0.5``; probe states (2000) have ``s . u`` in
 [0, 0.45]; the optimal action points along ``u``.  Printed per agent and task: the
 fraction of probe actions within 26 degrees of ``u`` and their median cos (with
-``--curve``, after every block).  Chance: 5 % (task 1), 10 % (task 2) of random
-directions are within 26 degrees.
+``--curve``, after every block).  Chance: 52 / 360 = 14.4 % (task 1) and
+(1 - cos 26 deg) / 2 = 5.1 % (task 2) of uniform directions are within 26 degrees.
 
     .venv/bin/python experiments/agents_synthetic.py                 # all, defaults
     .venv/bin/python experiments/agents_synthetic.py --agents iql --tasks 1 --curve \\

@@ -13,7 +13,8 @@ static :class:`~lazyq_jax.types.Transitions` of any sizes and is built the same 
   runner of all of them: ``ceil(steps / blocks)`` steps per block in one
   ``lax.scan``, minibatches of ``batch_size`` rows drawn uniformly with replacement
   from the rows ``< n_valid``, exactly ``steps`` steps over all blocks (the surplus
-  steps of the last block are skipped by ``lax.cond`` on the global step).
+  steps of the last block are computed but not applied: a select on the global step,
+  which is what ``vmap`` makes of a ``lax.cond`` anyway).
 
 The training state is :class:`State`: the method's ``model`` (parameters, targets,
 optimiser states), the raw PRNG key ``uint32[2]`` and the number of steps done;
@@ -364,26 +365,19 @@ class Baseline(Agent):
         n_valid = valid_rows(data, n_valid)
         draw, active, extra = self.sampler(data, n_valid)
 
-        def step_fn(model, step):
-            k_rows, k_update = jax.random.split(jax.random.fold_in(state.key, step))
-            return self.update(model, take(data, draw(k_rows)), k_update, step)
-
-        shapes = jax.eval_shape(step_fn, state.model, state.step)[1]
-        zeros = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
-
         def body(model, i):
             step = state.step + i
-            ran = step < self.config.steps
-            model, metrics = jax.lax.cond(ran & active, step_fn, lambda m, _: (m, zeros),
-                                          model, step)
-            return model, (metrics, ran)
+            k_rows, k_update = jax.random.split(jax.random.fold_in(state.key, step))
+            new, metrics = self.update(model, take(data, draw(k_rows)), k_update, step)
+            ran = step < self.config.steps  # the surplus steps of the last block: skipped
+            return select(ran & active, new, model), (metrics, ran)
 
         per_block = steps_per_block(self.config.steps, self.config.blocks)
         model, (metrics, ran) = jax.lax.scan(body, state.model,
                                              jnp.arange(per_block, dtype=jnp.int32))
         count = jnp.sum(ran, dtype=jnp.int32)
-        means = jax.tree.map(lambda x: jnp.sum(jnp.where(ran, x, 0)) / jnp.maximum(count, 1),
-                             metrics)
+        means = jax.tree.map(lambda x: jnp.where(active, jnp.sum(jnp.where(ran, x, 0)), 0)
+                             / jnp.maximum(count, 1), metrics)
         state = State(model=model, key=state.key, step=state.step + count)
         if self.progress is not None:
             jax.debug.callback(self.progress, state.step)

@@ -108,14 +108,19 @@ def _goals(rng: np.random.Generator, n: int, d: int, goal: str | None, n_goals: 
 
 
 def line_task(seed: int, n: int, d: int = 2, goal: str | None = "angle", *,
-              action_length: float = 0.1, n_goals: int = 16) -> Transitions:
+              action_length: float = 0.1, n_goals: int = 16,
+              band: tuple[float, float] = (-LINE, LINE)) -> Transitions:
     """``n`` transitions of the line task (see the module docstring): ``s[n, d]``, random
-    moves ``a[n, d]`` of length ``action_length``, goals of kind ``goal``."""
+    moves ``a[n, d]`` of length ``action_length``, goals of kind ``goal``; the rows keep
+    ``s . u`` in ``band`` (default ``[-0.5, 0.5]``: at most ~10 moves from the line;
+    ``(0, 0.5)``: at most 5, denser data for small tests)."""
     rng = np.random.default_rng(seed)
-    m = 4 * n  # about 60 % (d = 2) to 50 % (d = 3) of the candidates are kept
+    lo, hi = band
+    m = int(4 * n / min(1.0, hi - lo))  # about 60 % (d = 2) to 50 % (d = 3) per unit of band
     s = rng.uniform(-1, 1, (m, d)).astype(np.float32)
     g, u = _goals(rng, m, d, goal, n_goals)
-    keep = np.nonzero(np.abs(np.sum(s * u, 1)) <= LINE)[0][:n]
+    proj = np.sum(s * u, 1)
+    keep = np.nonzero((proj >= lo) & (proj <= hi))[0][:n]
     if len(keep) < n:
         raise ValueError(f"too few candidates for {n} rows in d = {d}")
     s, u, g = s[keep], u[keep], None if g is None else g[keep]
