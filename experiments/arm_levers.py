@@ -112,8 +112,11 @@ def main():
         keep_data(args.out, run_dir, config, seeds)
         for method, m in results["methods"].items():
             rows.append((name, method, m, last_metrics(run_dir) if method == "lazy" else {}))
-        (args.out / args.task / "levers.json").write_text(json.dumps(
-            {f"{n}/{meth}": {"summary": m["summary"], **extra} for n, meth, m, extra in rows}, indent=1))
+        table = args.out / args.task / "levers.json"  # kept across invocations
+        known = json.loads(table.read_text()) if table.exists() else {}
+        known.update({f"{n}/{meth}": {"seeds": seeds, "summary": m["summary"], **extra}
+                      for n, meth, m, extra in rows})
+        table.write_text(json.dumps(known, indent=1))
     task = tasks.get(args.task)
     head = [label for _, label in task.rates]
     print(f"\n{args.task}, seeds {seeds}: mean [95 % CI]")
