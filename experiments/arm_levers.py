@@ -26,24 +26,33 @@ from lazyq_jax.config import override
 from lazyq_jax.run import run
 from lazyq_jax.stats import format_ci
 
-FINGERTIP = ["neighbours.features=fingertip", "neighbours.radius_s=0.06"]
+# Every variant names its neighbour settings in full, so that a change of the presets does
+# not change what a variant means (the arm's default is "fingertip_offsets").
+IN_Q = ["neighbours.features=state", "neighbours.radius_s=0.12"]  # joint space, 0.12 rad
+AT_TIP = ["neighbours.features=fingertip", "neighbours.radius_s=0.06",
+          "neighbours.feature_weight=0.25"]  # (fingertip - disk, 0.25 q), radius 0.06
+LINEAR, OFFSETS = ["neighbours.local_model=action"], ["neighbours.local_model=action+state"]
+STATE, FINGERTIP, FINGERTIP_OFFSETS = IN_Q + LINEAR, AT_TIP + LINEAR, AT_TIP + OFFSETS
 VARIANTS = {
-    "state": [],  # the paper's: neighbourhoods in joint space, radius 0.12 rad
-    "state_offsets": ["neighbours.local_model=action+state"],
-    "fingertip": FINGERTIP,  # (fingertip - disk, 0.25 q)
-    "fingertip_w0": FINGERTIP + ["neighbours.feature_weight=0"],
-    "fingertip_w0.5": FINGERTIP + ["neighbours.feature_weight=0.5"],
-    "fingertip_offsets": FINGERTIP + ["neighbours.local_model=action+state"],
-    "state_x2": ["collect.n_starts=10000"],
-    "state_x4": ["collect.n_starts=20000"],
+    "state": STATE,  # the paper's: neighbourhoods in joint space
+    "state_offsets": IN_Q + OFFSETS,
+    "fingertip": FINGERTIP,
+    "fingertip_w0": AT_TIP[:2] + ["neighbours.feature_weight=0"] + LINEAR,
+    "fingertip_w0.5": AT_TIP[:2] + ["neighbours.feature_weight=0.5"] + LINEAR,
+    "fingertip_offsets": FINGERTIP_OFFSETS,  # the default of arm and arm-long
+    "state_x2": STATE + ["collect.n_starts=10000"],
+    "state_x4": STATE + ["collect.n_starts=20000"],
     "fingertip_x2": FINGERTIP + ["collect.n_starts=10000"],
     "fingertip_x4": FINGERTIP + ["collect.n_starts=20000"],
-    "fingertip_offsets_x4": FINGERTIP + ["neighbours.local_model=action+state", "collect.n_starts=20000"],
-    "state_k40": ["neighbours.k=40"],
-    "state_offsets_k40": ["neighbours.local_model=action+state", "neighbours.k=40"],
+    "fingertip_offsets_x2": FINGERTIP_OFFSETS + ["collect.n_starts=10000"],
+    "fingertip_offsets_x4": FINGERTIP_OFFSETS + ["collect.n_starts=20000"],
+    "state_k40": STATE + ["neighbours.k=40"],
+    "state_offsets_k40": IN_Q + OFFSETS + ["neighbours.k=40"],
+    "fingertip_offsets_k40": FINGERTIP_OFFSETS + ["neighbours.k=40"],
     "fingertip_move0.06": FINGERTIP + ["collect.arm.action_length=0.06"],
-    "online_fingertip": FINGERTIP,  # the online preset: 2500 random starts, 5 rounds, 20,000 moves
-    "online_state": [],
+    # the online preset: 2500 random starts, then 5 rounds of the agent's pushes, 20,000 moves
+    "online_fingertip_offsets": FINGERTIP_OFFSETS,
+    "online_state": STATE,
 }
 
 

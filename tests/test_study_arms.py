@@ -26,9 +26,11 @@ TINY = ["collect.n_starts=120", "collect.n_goals=6", "train.cycles=2", "train.ep
         "train.batch_size=64", "train.width=16", "eval.episodes_per_direction=2", "eval.max_steps=6",
         "eval.long_rollouts=2", "eval.long_max_steps=6", "neighbours.k=8"]
 # arm-long's lazy Q measures its neighbourhoods in the fingertip's space and fits the state
-# offsets too (every option the arm's levers use, through the CLI, the resume and the reloads)
+# offsets too (the arms' defaults, through the CLI, the resume and the reloads); arm's in
+# joint space with plain Eq. (4) models (the paper's), so that both kinds are run.
 LONG = ["neighbours.features=fingertip", "neighbours.radius_s=0.08", "neighbours.local_model=action+state"]
-EXTRA = {"arm": [], "arm-long": LONG}
+JOINT = ["neighbours.features=state", "neighbours.radius_s=0.12", "neighbours.local_model=action"]
+EXTRA = {"arm": JOINT, "arm-long": LONG}
 
 
 def cli(*args, timeout=900):
