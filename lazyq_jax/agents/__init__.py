@@ -16,11 +16,14 @@ from __future__ import annotations
 
 from typing import Any, Callable
 
-from lazyq_jax.agents import bc, dqn, iql, lazy, naf, reference, td3bc
+from lazyq_jax.agents import bc, dqn, gcbc, gciql, gcivl, iql, lazy, naf, reference, td3bc
 from lazyq_jax.agents.base import Act, Agent, FixedPolicy, Problem, Spec
 from lazyq_jax.agents.bc import BCConfig
 from lazyq_jax.agents.common import BaselineConfig
 from lazyq_jax.agents.dqn import DQNConfig
+from lazyq_jax.agents.gcbc import GCBCConfig
+from lazyq_jax.agents.gciql import GCIQLConfig
+from lazyq_jax.agents.gcivl import GCIVLConfig
 from lazyq_jax.agents.iql import IQLConfig
 from lazyq_jax.agents.lazy import LazyAgent, LazyConfig
 from lazyq_jax.agents.naf import NAFConfig
@@ -35,9 +38,12 @@ AGENTS: dict[str, tuple[type | None, Callable[..., Agent]]] = {
     "dqn": (DQNConfig, dqn.make),
     "naf": (NAFConfig, naf.make),
     "bc": (BCConfig, bc.make),
+    "gcivl": (GCIVLConfig, gcivl.make),
+    "gciql": (GCIQLConfig, gciql.make),
+    "gcbc": (GCBCConfig, gcbc.make),
     "random": (None, reference.make),
 }
-BASELINES = ("iql", "td3bc", "dqn", "naf", "bc")
+BASELINES = ("iql", "td3bc", "dqn", "naf", "bc", "gcivl", "gciql", "gcbc")
 METHODS = (*AGENTS, "scripted")
 
 
@@ -72,5 +78,6 @@ def make(name: str, config: Any = None, action_length: float = 0.1, *, problem: 
 
 
 __all__ = ["AGENTS", "Act", "Agent", "BASELINES", "BCConfig", "BaselineConfig", "DQNConfig",
-           "FixedPolicy", "IQLConfig", "LazyAgent", "LazyConfig", "METHODS", "NAFConfig",
-           "Problem", "Spec", "TD3BCConfig", "config_class", "make"]
+           "FixedPolicy", "GCBCConfig", "GCIQLConfig", "GCIVLConfig", "IQLConfig", "LazyAgent",
+           "LazyConfig", "METHODS", "NAFConfig", "Problem", "Spec", "TD3BCConfig", "config_class",
+           "make"]
