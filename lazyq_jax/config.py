@@ -48,6 +48,9 @@ def _positive(obj: Any, *names: str) -> None:
         )
 
 
+LOCAL_MODELS = ("action", "action+state", "action+state+goal")
+
+
 @dataclasses.dataclass(frozen=True)
 class NeighbourConfig:
     """Neighbourhoods B(s, g) of §V-A-2: ``|s - s0| < radius_s`` and ``|g - g0| < radius_g``
@@ -62,7 +65,8 @@ class NeighbourConfig:
     the weight of the joint angles beside the fingertip).  ``local_model``: ``"action"``
     (Eq. 4-6: ``alpha + beta . a`` over each neighbourhood) or ``"action+state"`` (also
     each neighbour's state offset from the centre as a covariate: ``alpha + beta . a +
-    gamma . (s_j - s)``).  The tasks set the radii of their own spaces (e.g. radians in
+    gamma . (s_j - s)``) or ``"action+state+goal"`` (and the goal offset ``g_j - g``, wrapped for
+    angles: where the value changes across the goal ball, e.g. vector goals in a maze).  The tasks set the radii of their own spaces (e.g. radians in
     joint space)."""
 
     k: int = 20
@@ -80,8 +84,8 @@ class NeighbourConfig:
         _check(isinstance(self.feature_weight, (int, float)) and not isinstance(self.feature_weight, bool)
                and 0 <= self.feature_weight < float("inf"),
                f"NeighbourConfig.feature_weight must be a number >= 0, got {self.feature_weight!r}")
-        _check(self.local_model in ("action", "action+state"),
-               f"NeighbourConfig.local_model must be 'action' or 'action+state', got {self.local_model!r}")
+        _check(self.local_model in LOCAL_MODELS,
+               f"NeighbourConfig.local_model must be one of {LOCAL_MODELS}, got {self.local_model!r}")
         _counts(self, "k")
         _counts(self, "max_level", minimum=0)
         _positive(self, "radius_s", "radius_g")
@@ -239,6 +243,8 @@ def _set(obj: Any, path: list[str], raw: str, dotted: str) -> Any:
     if dataclasses.is_dataclass(current):
         raise ConfigError(f"{dotted!r} is a section; set one of its fields, e.g. {dotted}.<field>=...")
     optional = "None" in str(fields[name].type)
+    if current is None and "str" in str(fields[name].type) and raw.lower() not in ("none", "null"):
+        return dataclasses.replace(obj, **{name: raw})  # an unset optional text field (a path)
     return dataclasses.replace(obj, **{name: _parse(raw, current, optional, dotted)})
 
 
@@ -262,7 +268,8 @@ def _parse(raw: str, current: Any, optional: bool, dotted: str) -> Any:
         if kind is float:
             return float(raw)
         if kind is tuple:
-            return tuple(float(x) for x in raw.strip("()[] ").split(","))
+            ints = bool(current) and all(_is_int(x) for x in current)
+            return tuple((int if ints else float)(x) for x in raw.strip("()[] ").split(","))
         return kind(raw)
     except ValueError:
         what = "a comma-separated list of numbers" if kind is tuple else f"a value of type {kind.__name__}"

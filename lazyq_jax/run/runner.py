@@ -79,7 +79,9 @@ def build_agent(ctx: Context, spec: MethodSpec, sd: SeedData) -> tuple[Agent, di
     """The agent of ``spec`` for this run, and the record of its settings (``method.json``).
 
     Baselines get lazy Q's budget (its gradient steps times ``budget``), batch size,
-    network width and depth and discount, then the spec's own overrides."""
+    network width and depth and discount, then the task's settings for the method
+    (:meth:`~lazyq_jax.tasks.base.Task.method_defaults`, e.g. a benchmark's published
+    ones), then the spec's own overrides."""
     task, config = ctx.task, ctx.config
     problem = task.problem(config)
     if spec.name == "lazy":
@@ -107,6 +109,7 @@ def build_agent(ctx: Context, spec: MethodSpec, sd: SeedData) -> tuple[Agent, di
     cfg = agents.config_class(spec.name)(
         steps=max(1, round(budget * lazy_steps(config, sd))), batch_size=tc.batch_size,
         width=tc.width, depth=tc.depth, gamma=tc.gamma)
+    cfg = dataclasses.replace(cfg, **task.method_defaults(spec.name))
     cfg = override(cfg, [f"{k}={v}" for k, v in fields.items()])
     return (agents.make(spec.name, cfg, problem=problem),
             {"method": spec.name, "config": dataclasses.asdict(cfg), "budget": budget})

@@ -9,12 +9,14 @@ from __future__ import annotations
 from lazyq_jax.config import Config, ConfigError, from_dict
 from lazyq_jax.tasks.arm import ArmTask
 from lazyq_jax.tasks.base import Task
+from lazyq_jax.tasks.pointmaze import PointMazeTask
 from lazyq_jax.tasks.push import PushTask
 
 TASKS: dict[str, Task] = {
     "push": PushTask(),
     "arm": ArmTask("arm", disk_range=None),
     "arm-long": ArmTask("arm-long", disk_range=0.4),
+    "pointmaze": PointMazeTask(),
 }
 
 

@@ -198,6 +198,12 @@ class Task:
         """What the agents are told besides the data (action set, input scales, ...)."""
         raise NotImplementedError
 
+    def method_defaults(self, name: str) -> dict:
+        """Config fields of baseline ``name`` that this task sets (e.g. a benchmark's published
+        network sizes); they replace the ones taken from lazy Q's settings and yield to the
+        method's own options (``--methods iql:width=64``).  Default: none."""
+        return {}
+
     def feature_maps(self, config: Config) -> dict[str, Callable | None]:
         """The spaces lazy Q may measure its neighbourhoods in (``neighbours.features``):
         ``name -> phi(s [..., d_s]) -> [..., m]``; ``"state"`` (None: the state itself) always."""

@@ -1,0 +1,203 @@
+"""OGBench's pointmaze (Park et al. 2024; ``pointmaze-medium-navigate-v0``, ``large`` and ``giant`` as
+``collect.maze``): a public benchmark nobody here wrote.
+
+State: the point's ``(x, y)`` (``d_s = 2``); goal: a position ``g [2]`` (vector goals); action: the
+box ``[-1, 1]^2`` (``T(s, a) = s + 0.2 a`` away from walls); reward ``success - 1`` with success
+the goal index equal to the transition's (OGBench's ``GCDataset``), discount 0.99.  Data: OGBench's
+navigate recipe (or a user's OGBench ``.npz``, ``collect.dataset``) relabelled with OGBench's value
+goals; evaluation: OGBench's five tasks, 50 episodes each of at most 1000 steps.  See
+:mod:`~lazyq_jax.tasks.pointmaze.maze` (the env), :mod:`~lazyq_jax.tasks.pointmaze.dataset` (the
+data) and shared/DESIGN.md §8 (what was checked against OGBench).
+"""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+from typing import Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh
+
+from lazyq_jax.agents.base import Problem
+from lazyq_jax.config import Config
+from lazyq_jax.keys import purpose_key
+from lazyq_jax.tasks.base import (CORRECT, NOT_PUSHED, Evaluation, Protocol, Task, make_protocol,
+                                  run_protocol, seed_acts)
+from lazyq_jax.tasks.pointmaze import plots
+from lazyq_jax.tasks.pointmaze.config import (PointMazeCollectConfig, PointMazeEvalConfig, check,
+                                              presets)
+from lazyq_jax.tasks.pointmaze.dataset import (load_npz, navigate, relabel, save_npz,
+                                               trajectory_transitions)
+from lazyq_jax.tasks.pointmaze.maze import GOAL_TOL, NOISE, Maze, get_maze
+from lazyq_jax.types import Transitions
+
+__all__ = ["Maze", "PointMazeCollectConfig", "PointMazeEvalConfig", "PointMazeTask", "get_maze",
+           "load_npz", "navigate", "relabel", "save_npz", "trajectory_transitions"]
+
+N_TASKS = 5
+
+
+def seed_rng(key: jax.Array) -> np.random.Generator:
+    """A NumPy generator seeded from a JAX key (the host-side data of one seed)."""
+    return np.random.default_rng(int(jax.random.randint(key, (), 0, 2**31 - 1)))
+
+
+def collect_steps(key: jax.Array, collect: PointMazeCollectConfig, progress: bool = False) -> dict:
+    """One seed's trajectories as transitions (:func:`trajectory_transitions`): the file
+    ``collect.dataset`` if set, else the navigate recipe drawn from ``key``."""
+    if collect.dataset is not None:
+        return trajectory_transitions(load_npz(collect.dataset))
+    raw = navigate(get_maze(collect.maze), seed_rng(key), collect.episodes, collect.episode_steps,
+                   collect.noise, progress=progress)
+    return trajectory_transitions(raw)
+
+
+def host_call(fn: Callable, *args) -> jax.Array:
+    """``fn(*numpy args) -> array of args[0]'s shape`` from jitted code (float32), batched over
+    any ``vmap`` (``jax.pure_callback``)."""
+    out = jax.ShapeDtypeStruct(jnp.shape(args[0]), jnp.float32)
+    return jax.pure_callback(lambda *a: np.asarray(fn(*a), np.float32), out, *args,
+                             vmap_method="broadcast_all")
+
+
+def oracle_action(maze: Maze, s, g) -> np.ndarray:
+    """The scripted controller's action for ``s, g [..., 2]``."""
+    s, g = np.asarray(s, np.float64), np.asarray(g, np.float64)
+    flat_s, flat_g = s.reshape(-1, 2), np.broadcast_to(g, s.shape).reshape(-1, 2)
+    d = maze.subgoal_direction(flat_s, flat_g)
+    here = np.all(maze.xy_to_ij(flat_s) == maze.xy_to_ij(flat_g), axis=-1)
+    to_goal = flat_g - flat_s
+    d[here] = to_goal[here] / (np.linalg.norm(to_goal[here], axis=-1, keepdims=True) + 1e-6)
+    return d.reshape(s.shape)
+
+
+def native_step(maze: str) -> Callable:
+    """``step(qpos [..., 2], actions [..., 2]) -> qpos`` (float32) for jitted code: the maze's
+    native batched step through ``jax.pure_callback`` (batched over any ``vmap``)."""
+    return lambda q, a: host_call(get_maze(maze).step, q, a)
+
+
+def task_protocol(maze: str, cfg: PointMazeEvalConfig) -> Protocol:
+    """OGBench's evaluation as a :class:`~lazyq_jax.tasks.base.Protocol`: ``episodes_per_task``
+    episodes of each of ``cfg.tasks`` side by side; ``ctx``: goals ``[B, 2]`` and task numbers."""
+    m = get_maze(maze)
+    task_ids = np.repeat(np.asarray(cfg.tasks), cfg.episodes_per_task)
+    init = jnp.asarray(m.ij_to_xy(np.asarray([m.tasks[t - 1][0] for t in task_ids])), jnp.float32)
+    goal = jnp.asarray(m.ij_to_xy(np.asarray([m.tasks[t - 1][1] for t in task_ids])), jnp.float32)
+    step_native = native_step(maze)
+    b = len(task_ids)
+
+    def start(key):
+        k_s, k_g = jax.random.split(key)
+        s = init + jax.random.uniform(k_s, init.shape, jnp.float32, -NOISE, NOISE)
+        g = goal + jax.random.uniform(k_g, goal.shape, jnp.float32, -NOISE, NOISE)
+        return s, {"goal": g, "task": jnp.asarray(task_ids, jnp.int32)}, jnp.zeros((b,), bool)
+
+    def step(q, a):
+        return step_native(q, jnp.clip(a, -1.0, 1.0)), None
+
+    def outcome_of(info, g, new_q, ctx):
+        reached = jnp.linalg.norm(new_q - g, axis=-1) <= GOAL_TOL
+        return jnp.where(reached, CORRECT, NOT_PUSHED), reached
+
+    return make_protocol(start, step, goal_of=lambda q, ctx: ctx["goal"], outcome_of=outcome_of,
+                         observe=lambda q: q, record=lambda q: (q, None, None), steps=cfg.max_steps)
+
+
+@functools.lru_cache(maxsize=8)
+def _protocol(maze: str, cfg: PointMazeEvalConfig) -> Protocol:
+    return task_protocol(maze, cfg)
+
+
+def summarize(rollouts, cfg: PointMazeEvalConfig) -> dict:
+    """One seed's evaluation: success rate and mean steps of the successes per task, the mean
+    over tasks (OGBench's number), and the share of steps without an action."""
+    task = np.asarray(rollouts.ctx["task"])
+    success = np.asarray(rollouts.outcome) == CORRECT
+    steps = np.asarray(rollouts.steps)
+    per_task = []
+    for t in cfg.tasks:
+        sel = task == t
+        per_task.append({"task": int(t), "episodes": int(sel.sum()), "successes": int(success[sel].sum()),
+                         "success_rate": float(success[sel].mean()),
+                         "mean_steps_of_successes": float(steps[sel & success].mean())
+                         if (sel & success).any() else None})
+    return {"per_task": per_task, "success_rate": float(np.mean([r["success_rate"] for r in per_task])),
+            "idle_fraction": float(np.sum(rollouts.idle) / max(1, np.sum(steps)))}
+
+
+class PointMazeTask(Task):
+    """``pointmaze`` (see the module docstring)."""
+
+    name = "pointmaze"
+    summary = "OGBench's pointmaze-medium-navigate: a point in a maze, vector goals, box actions"
+    collect_config = PointMazeCollectConfig
+    eval_config = PointMazeEvalConfig
+    rates = (("success_rate", "success (5 tasks)"),
+             *((f"task{i}", f"task {i}") for i in range(1, N_TASKS + 1)))
+
+    def __init__(self):
+        self.presets = presets()
+
+    def check(self, config: Config) -> None:
+        super().check(config)
+        check(config)
+
+    def problem(self, config: Config) -> Problem:
+        return Problem(action_length=1.0, action_set="box", state_scale=1.0)
+
+    def method_defaults(self, name: str) -> dict:
+        """OGBench's published settings for its baselines (3 x 512 + LayerNorm, batch 1024)."""
+        return {"width": 512, "depth": 4, "batch_size": 1024}
+
+    def collect(self, key, config: Config, *, mesh: Mesh | None = None, progress: bool = True
+                ) -> Transitions:
+        c = config.collect
+        steps = collect_steps(key, c, progress=progress)
+        data, _ = relabel(seed_rng(jax.random.fold_in(key, 1)), steps, c.goals_per_transition,
+                          c.p_curgoal, c.p_trajgoal, c.discount)
+        return data.astype_canonical()
+
+    def data_summary(self, data: Transitions, config: Config) -> dict:
+        return {"rows": data.size, "successes": int(np.sum(np.asarray(data.done)))}
+
+    def data_table(self, summaries: Sequence[dict]) -> dict:
+        return {k: [s[k] for s in summaries] for k in ("rows", "successes")}
+
+    def evaluate(self, act_of, policies, config: Config, seeds: Sequence[int], *,
+                 quick: bool = False) -> Evaluation:
+        cfg = config.eval
+        program = _protocol(config.collect.maze, cfg)
+        keys = jnp.stack([purpose_key(int(s) + cfg.seed, "eval") for s in seeds])
+        rollouts = run_protocol(program, seed_acts(act_of), policies, keys)
+        per_seed = []
+        for i, seed in enumerate(seeds):
+            one = jax.tree.map(lambda x, i=i: x[i], rollouts)
+            per_seed.append({"seed": int(seed), "eval_seed": int(seed) + cfg.seed,
+                             "tasks": summarize(one, cfg)})
+        return Evaluation(per_seed, {"tasks": rollouts})
+
+    def scripted(self, config: Config):
+        """OGBench's data-collecting oracle without its noise, finishing on the goal: the unit
+        direction to the BFS subgoal cell's centre, or to the goal itself once in its cell (the
+        cell centre can be 1.4 from a noisy goal).  An upper reference, not a learner."""
+        maze = config.collect.maze
+        return lambda key, s, g: host_call(functools.partial(oracle_action, get_maze(maze)), s, g)
+
+    def seed_rates(self, result: dict) -> dict:
+        r = result["tasks"]
+        rates = {"success_rate": r["success_rate"], "idle_fraction": r["idle_fraction"]}
+        rates.update({f"task{row['task']}": row["success_rate"] for row in r["per_task"]})
+        return rates
+
+    def figures(self, out_dir: Path, result: dict, rollouts: dict, config: Config,
+                value_fn: Callable | None = None) -> list[Path]:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        maze = get_maze(config.collect.maze)
+        paths = [plots.rollouts_figure(maze, rollouts["tasks"], result, out_dir / "maze_rollouts.png")]
+        if value_fn is not None:
+            paths.append(plots.value_figure(maze, value_fn, out_dir / "maze_value.png"))
+        return paths
