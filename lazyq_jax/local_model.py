@@ -94,6 +94,22 @@ def fit_local_linear(actions, values, weights=None, offsets=None):
     return alpha, beta
 
 
+def neighbour_offsets(s_nb, s0, g_nb=None, g0=None):
+    """The covariates of the extended local models: each neighbour's state offset ``s_j - s``
+    (``s_nb [..., k, d_s]``, ``s0 [..., d_s]``) and, if goals are given, its goal offset
+    ``g_j - g`` (vectors ``[..., k, d_g]`` / ``[..., d_g]``, or angles ``[..., k]`` / ``[...]``
+    wrapped to ``[-pi, pi)``): ``[..., k, m]`` for :func:`fit_local_linear`'s ``offsets``."""
+    parts = [jnp.asarray(s_nb, jnp.float32) - jnp.asarray(s0, jnp.float32)[..., None, :]]
+    if g_nb is not None:
+        g_nb, g0 = jnp.asarray(g_nb, jnp.float32), jnp.asarray(g0, jnp.float32)
+        if g_nb.ndim == parts[0].ndim - 1:  # angles: the wrapped difference, one column
+            d = g_nb - g0[..., None]
+            parts.append((jnp.mod(d + jnp.pi, 2 * jnp.pi) - jnp.pi)[..., None])
+        else:
+            parts.append(g_nb - g0[..., None, :])
+    return jnp.concatenate(parts, -1)
+
+
 def precompute_projection(actions, weights=None):
     """Data-only part of :func:`fit_local_linear`: ``P [..., 1 + n_a, k]`` with
     ``[alpha, beta] = P @ values`` (see :func:`apply_projection`).

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from lazyq_jax.local_model import fit_local_linear, greedy_action
+from lazyq_jax.local_model import fit_local_linear, greedy_action, neighbour_offsets
 from lazyq_jax.neighbours import GridIndex, build_index, is_grid_space, query_neighbours
 from lazyq_jax.neighbours.query import PolicyIndex, build_policy_index, query_policy, stack_policy_indices
 from lazyq_jax.targets import bootstrap_table
@@ -28,6 +28,7 @@ class LazyPolicy:
     action_set: str = struct.field(pytree_node=False, default="ball")
     features: Callable | None = struct.field(pytree_node=False, default=None)  # phi(s): the search space
     states: jax.Array | None = None  # [N, d_s] the dataset's states, for state-offset local models
+    goals: jax.Array | None = None  # the dataset's goals, for goal-offset local models
 
 
 def policy_index(data_s, data_g, *, k: int, radius_s: float, radius_g: float, growth: float,
@@ -93,7 +94,9 @@ def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):
     else:
         nb = query_neighbours(policy.index, key, x, g)
     rows = jnp.maximum(nb.idx, 0)
-    offsets = None if policy.states is None else policy.states[rows] - s[:, None]
+    offsets = None if policy.states is None else neighbour_offsets(
+        policy.states[rows], s, None if policy.goals is None else policy.goals[rows],
+        None if policy.goals is None else g)
     _, beta = fit_local_linear(policy.actions[rows], policy.values[rows], offsets=offsets)
     action = greedy_action(beta, policy.action_length, policy.action_set)
     found = nb.level >= 0

@@ -16,7 +16,7 @@ from flax import struct
 from jax.sharding import Mesh
 
 from lazyq_jax.local_model import (apply_projection, fit_local_linear, greedy_action, max_linear,
-                                   safe_norm)
+                                   neighbour_offsets, safe_norm)
 from lazyq_jax.parallel import constrain, mesh_size, replicated, sharded
 from lazyq_jax.types import Transitions
 
@@ -141,11 +141,13 @@ def bootstrap_table(v: ValueFn, data: Transitions, gamma, batch_size=65536,
 
 
 def local_fits(v: ValueFn, data: Transitions, neighbours_idx, *, gamma, projection=None,
-               batch_size=65536, mesh: Mesh | None = None, state_offsets: bool = False):
+               batch_size=65536, mesh: Mesh | None = None, state_offsets: bool = False,
+               goal_offsets: bool = False):
     """``(alpha [N], beta [N, n_a], y_nb [N, k])``: Eq. (5)-(6) for every transition's
     neighbourhood with ``y = r + gamma (1 - done) v(s', g)``; ``y_nb = y[neighbours_idx]``.
     ``state_offsets``: fit ``alpha + beta . a + gamma' . (s_j - s_i)`` instead
-    (:func:`lazyq_jax.local_model.fit_local_linear`'s ``offsets``).
+    (:func:`lazyq_jax.local_model.fit_local_linear`'s ``offsets``); ``goal_offsets`` (with
+    ``state_offsets``): also ``g_j - g_i`` (:func:`lazyq_jax.local_model.neighbour_offsets`).
 
     With a ``mesh`` the value table is computed split over the devices and then
     replicated, and the fits are split by rows (the outputs are row-sharded).
@@ -160,7 +162,10 @@ def local_fits(v: ValueFn, data: Transitions, neighbours_idx, *, gamma, projecti
     idx = constrain(idx, sharded(mesh))
     y_nb = bootstrap_table(v, data, gamma, batch_size, mesh)[idx]
     if state_offsets:
-        alpha, beta = fit_local_linear(data.a[idx], y_nb, offsets=data.s[idx] - data.s[rows][:, None])
+        g = data.g if goal_offsets else None
+        offsets = neighbour_offsets(data.s[idx], data.s[rows], None if g is None else g[idx],
+                                    None if g is None else g[rows])
+        alpha, beta = fit_local_linear(data.a[idx], y_nb, offsets=offsets)
     elif projection is None:
         alpha, beta = fit_local_linear(data.a[idx], y_nb)
     else:

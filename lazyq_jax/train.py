@@ -97,7 +97,7 @@ def _describe(state_dim, goal) -> str:
 
 
 def make_train(config: TrainConfig, action_length: float, *, action_set: str = "ball",
-               state_offsets: bool = False, state_scale=1.0, probes=None, state_dim: int | None = None,
+               state_offsets: bool = False, goal_offsets: bool = False, state_scale=1.0, probes=None, state_dim: int | None = None,
                goal: str | int | None = "from data",
                progress: Callable[[int], None] | None = None, mesh: Mesh | None = None) -> Trainer:
     """Build the pure training functions for ``config`` (see module docstring).
@@ -105,7 +105,8 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
     ``action_length`` is ``c`` and ``action_set`` the action set (``"ball"``: ``|a| <= c``,
     the paper's, ``max_a beta.a = c |beta|`` in Eq. 7; ``"box"``: ``|a_i| <= c``, ``c sum
     |beta_i|``), for any ``n_a``.  ``state_offsets``: the local models are fitted with each
-    neighbour's state offset as a covariate (:func:`lazyq_jax.targets.local_fits`).  The
+    neighbour's state offset as a covariate (:func:`lazyq_jax.targets.local_fits`), and with
+    ``goal_offsets`` its goal offset too.  The
     sizes come from the data passed to ``init``:
     states ``[N, d_s]``, goals ``g[N]`` (an angle, periodic), ``g[N, d_g]`` (a vector) or
     ``None``.  ``state_dim`` and ``goal`` (``"angle"``, an int ``d_g`` or ``None``) may fix
@@ -192,7 +193,8 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
 
     def fits(state: TrainState, data: Transitions, idx: jax.Array):
         return local_fits(value_fn(state), data, idx, gamma=config.gamma,
-                          batch_size=config.target_batch_size, mesh=mesh, state_offsets=state_offsets)
+                          batch_size=config.target_batch_size, mesh=mesh, state_offsets=state_offsets,
+                          goal_offsets=goal_offsets)
 
     def loss_fn(params, batch_stats, s, g, y):
         v, updates = train_network.apply({"params": params, "batch_stats": batch_stats}, s, g,

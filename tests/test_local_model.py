@@ -12,6 +12,7 @@ from lazyq_jax.local_model import (
     fit_local_linear,
     greedy_action,
     max_linear,
+    neighbour_offsets,
     precompute_projection,
     safe_norm,
 )
@@ -197,3 +198,39 @@ def test_state_offsets_as_covariates_match_lstsq():
     assert np.abs(b_plain - beta).max() > 10 * np.abs(b - beta).max()
     with pytest.raises(ValueError, match="offsets"):
         fit_local_linear(a, v, offsets=d[:, :5])
+
+
+@pytest.mark.parametrize("goal", ["vector", "angle"])
+def test_goal_offsets_are_the_wrapped_differences(goal):
+    """``neighbour_offsets``: ``s_j - s`` then ``g_j - g`` (angles wrapped to [-pi, pi): a
+    neighbour at 3.1 of a centre at -3.1 is 0.083 away, not -6.2), against NumPy; and a value
+    that moves with the goal offset no longer biases beta once the goal is a covariate."""
+    rng = np.random.default_rng(4)
+    s_nb, s0 = rng.normal(size=(30, 12, 2)), rng.normal(size=(30, 2))
+    if goal == "vector":
+        g_nb, g0 = rng.normal(size=(30, 12, 2)), rng.normal(size=(30, 2))
+        dg = g_nb - g0[:, None]
+    else:
+        g0 = rng.uniform(-np.pi, np.pi, 30)
+        g_nb = np.mod(g0[:, None] + rng.uniform(-0.3, 0.3, (30, 12)) + np.pi, 2 * np.pi) - np.pi
+        g0[0], g_nb[0, 0] = -3.1, 3.1
+        dg = (np.mod(g_nb - g0[:, None] + np.pi, 2 * np.pi) - np.pi)[..., None]
+        assert abs(dg[0, 0, 0] - (6.2 - 2 * np.pi)) < 1e-12
+    off = np.asarray(neighbour_offsets(s_nb, s0, g_nb, g0))
+    ref = np.concatenate([s_nb - s0[:, None], dg], -1)
+    np.testing.assert_allclose(off, ref, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(neighbour_offsets(s_nb, s0)), ref[..., :2], atol=1e-6)
+    # values = 1 + beta.a + 5 * first goal offset: the action-only fit is biased, this one not
+    a = rng.uniform(-1, 1, (30, 12, 2))
+    beta = rng.normal(size=(30, 2))
+    # goal offsets correlated with the actions: the action-only fit absorbs them into beta
+    if goal == "vector":
+        g_nb = g0[:, None] + 0.5 * a + 0.5 * rng.normal(size=a.shape)
+        dg = g_nb - g0[:, None]
+    v = 1 + np.einsum("nka,na->nk", a, beta) + 5 * dg[..., 0]
+    _, b = fit_local_linear(a, v, offsets=neighbour_offsets(s_nb, s0, g_nb, g0))
+    _, b_plain = fit_local_linear(a, v, offsets=neighbour_offsets(s_nb, s0))
+    # float32 normal equations of 5 covariates with coefficients up to 5: 1e-3 of that
+    np.testing.assert_allclose(b, beta, atol=5e-3)
+    if goal == "vector":
+        assert np.abs(b_plain - beta).max() > 1.0

@@ -63,7 +63,8 @@ class LazyAgent(Agent):
         self.config, self.problem, self.mesh = config, problem, mesh
         self.blocks = config.train.cycles
         self.trainer = make_train(config.train, problem.action_length, action_set=problem.action_set,
-                                  state_offsets=config.neighbours.local_model == "action+state",
+                                  state_offsets=config.neighbours.local_model != "action",
+                                  goal_offsets=config.neighbours.local_model == "action+state+goal",
                                   state_scale=problem.state_scale, probes=problem.probes, mesh=mesh)
 
     # --- training
@@ -146,9 +147,11 @@ class LazyAgent(Agent):
         values = over_seeds(lambda st, d: bootstrap_table(self.trainer.value_fn(st), d, gamma),
                             n_seeds)(states, data)
         length = jnp.full(n_seeds, self.problem.action_length, jnp.float32)
-        states = data.s if self.config.neighbours.local_model == "action+state" else None
+        model = self.config.neighbours.local_model
+        states = data.s if model != "action" else None
+        goals = data.g if model == "action+state+goal" else None
         return LazyPolicy(index, data.a, values, length, self.problem.action_set, self.problem.features,
-                          states)
+                          states, goals)
 
     def act(self, policy: LazyPolicy):
         return lambda key, s, g: lazy_policy(policy, key, s, g)[0]
