@@ -138,6 +138,8 @@ def save_dataset(path: str | os.PathLike, data: Transitions, meta: dict | None =
     arrays = {name: np.asarray(getattr(data, name)) for name in ("s", "a", "s_next", "r", "done")}
     if data.g is not None:
         arrays["g"] = np.asarray(data.g)
+    if data.traj_last is not None:
+        arrays["traj_last"] = np.asarray(data.traj_last, np.int32)
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as f:
         np.savez(f, header=np.frombuffer(json.dumps(header).encode(), np.uint8), **arrays)
@@ -187,8 +189,14 @@ def load_dataset(path: str | os.PathLike) -> tuple[Transitions, dict]:
                                f"{np.dtype(dtype)} with {ndim} dimension(s) and {rows} rows")
     if arrays["s_next"].shape != arrays["s"].shape:
         raise DatasetError(f"{path}: s_next {arrays['s_next'].shape} does not match s {arrays['s'].shape}")
+    last = arrays.get("traj_last")
+    if last is not None and (last.dtype != np.int32 or last.shape != (rows,)
+                             or (rows and (last.min() < 0 or last.max() >= rows))):
+        raise DatasetError(f"{path}: array 'traj_last' has {last.dtype}{list(last.shape)}, expected "
+                           f"int32 [{rows}] of row indices")
     data = Transitions(s=jnp.asarray(arrays["s"]), a=jnp.asarray(arrays["a"]),
                        s_next=jnp.asarray(arrays["s_next"]), r=jnp.asarray(arrays["r"]),
                        g=None if goal == "none" else jnp.asarray(arrays["g"]),
-                       done=jnp.asarray(arrays["done"]))
+                       done=jnp.asarray(arrays["done"]),
+                       traj_last=None if last is None else jnp.asarray(last))
     return data, header.get("meta", {})

@@ -135,6 +135,8 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
         raise ValueError(f"state_dim must be an integer >= 1, got {state_dim!r}")
     if not (goal in ("angle", None, "from data") or (isinstance(goal, int) and goal >= 1)):
         raise ValueError(f"goal must be 'angle', None or a vector dimension >= 1, got {goal!r}")
+    if goal_offsets and not state_offsets:
+        raise ValueError("goal_offsets=True needs state_offsets=True (local_model 'action+state+goal')")
     if action_set not in ("ball", "box"):
         raise ValueError(f"action_set must be 'ball' or 'box', got {action_set!r}")
     scale = np.asarray(state_scale, np.float64)

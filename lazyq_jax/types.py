@@ -20,6 +20,10 @@ class Transitions:
     * ``g``: the goal: float32 ``[N]`` an angle in ``[-pi, pi)`` (periodic), float32
       ``[N, d_g]`` a vector (Euclidean), or ``None`` (no goal).
     * ``done``: bool ``[N]``: terminal transition (not bootstrapped).
+    * ``traj_last``: optional int32 ``[N]``: when the rows are trajectories (a trajectory's
+      transitions in consecutive rows), the row of the last transition of each row's
+      trajectory.  Goal-conditioned agents (OGBench's) then draw fresh goals from the
+      trajectories every minibatch; ``None`` (default) for data that are not trajectories.
 
     Nothing here is specific to a task: any ``Transitions`` works with the lazy core
     and the training code.
@@ -31,6 +35,7 @@ class Transitions:
     r: jax.Array
     g: jax.Array | None
     done: jax.Array
+    traj_last: jax.Array | None = None
 
     @property
     def size(self) -> int:
@@ -43,6 +48,7 @@ class Transitions:
             s=f(self.s), a=f(self.a), s_next=f(self.s_next), r=f(self.r),
             g=None if self.g is None else f(self.g),
             done=jnp.asarray(self.done, bool),
+            traj_last=None if self.traj_last is None else jnp.asarray(self.traj_last, jnp.int32),
         )
 
 

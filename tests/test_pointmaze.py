@@ -14,9 +14,9 @@ import numpy as np
 import ogbench
 import pytest
 
-from lazyq_jax import tasks
+from lazyq_jax import agents, tasks
 from lazyq_jax.config import ConfigError, override
-from lazyq_jax.data import DatasetError
+from lazyq_jax.data import DatasetError, load_dataset, save_dataset
 from lazyq_jax.run import load_policy
 from lazyq_jax.tasks.base import CORRECT, run_protocol, seed_acts
 from lazyq_jax.tasks.pointmaze import (get_maze, load_npz, navigate, oracle_action, relabel,
@@ -73,6 +73,8 @@ def test_step_equals_ogbench_env_with_wall_contacts(maze, gym_env):
             q = maze.step(q, a[None])
             worst = max(worst, float(np.abs(q[0] - ob[:2]).max()))
     assert contacts > 50, "the sequences must push into walls"
+    # 0 seen; the bound: our batches start MuJoCo's constraint solver cold, the env warm-starts
+    # it, so they agree to the solver's tolerance (1e-8 relative forces), far below 1e-5
     assert worst <= 1e-5
     # clipping: an action beyond the box moves as its clip
     np.testing.assert_array_equal(maze.step(np.zeros((1, 2)), np.array([[3.0, -0.5]])),
@@ -167,6 +169,8 @@ def test_goal_relabelling_frequencies():
     goal_idx = data.g[:, 0].astype(np.int64)  # states are their own index here
     np.testing.assert_array_equal(data.done, goal_idx == idx)
     np.testing.assert_array_equal(data.r, data.done.astype(np.float32) - 1)
+    # each copy keeps its trajectories: the last row of row r's trajectory, in r's copy
+    np.testing.assert_array_equal(data.traj_last, np.repeat([0, len(s)], len(s)) + np.tile(last, 2))
     assert (goal_idx[kind == 0] == idx[kind == 0]).all()
     future = kind == 1
     off = goal_idx[future] - idx[future]
@@ -259,7 +263,7 @@ def test_config_errors():
     assert override(base, ["eval.tasks=1,3"]).eval.tasks == (1, 3)
 
 
-def test_collect_is_seeded_and_relabelled():
+def test_collect_is_seeded_and_relabelled(tmp_path):
     """The same key gives the same dataset, another key another; rows are the transitions
     times the goals per transition, with OGBench's reward convention."""
     task = tasks.get("pointmaze")
@@ -275,5 +279,26 @@ def test_collect_is_seeded_and_relabelled():
     assert not np.array_equal(a.s, c.s)
     np.testing.assert_array_equal(np.asarray(a.r), np.asarray(a.done, np.float32) - 1)
     assert 0.15 < float(np.mean(a.done)) < 0.25  # p_curgoal 0.2 (plus rare random hits)
+    path = save_dataset(tmp_path / "d.npz", a)
+    b, _ = load_dataset(path)
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):  # traj_last kept
+        np.testing.assert_array_equal(x, y)
+    assert b.traj_last is not None
     step = np.linalg.norm(np.asarray(a.s_next) - np.asarray(a.s), axis=-1)
     assert step.max() <= 0.2 * np.sqrt(2) + 1e-5  # qpos += 0.2 a, a in the box
+
+
+def test_lazy_refuses_underdetermined_local_models():
+    """k below the local model's coefficients (1 + n_a + d_s + d_g = 7 with goal offsets on
+    the maze) is refused before training, naming both."""
+    task = tasks.get("pointmaze")
+    cfg = override(tasks.preset("pointmaze", "smoke"),
+                   ["neighbours.k=6", "neighbours.local_model=action+state+goal"])
+    data = task.collect(jax.random.PRNGKey(0), cfg, progress=False)
+    agent = agents.make("lazy", agents.LazyConfig(train=cfg.train, neighbours=cfg.neighbours),
+                        problem=task.problem(cfg))
+    with pytest.raises(ValueError, match="k=6 is below the 7 coefficients"):
+        agent.init(jax.random.PRNGKey(0), data)
+    ok = override(cfg, ["neighbours.k=7"])
+    agents.make("lazy", agents.LazyConfig(train=ok.train, neighbours=ok.neighbours),
+                problem=task.problem(ok)).check_k(data)

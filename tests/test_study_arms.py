@@ -24,7 +24,7 @@ from lazyq_jax.run.sources import static_data
 METHODS = "lazy,iql,td3bc,dqn,naf,bc,random,scripted"
 TINY = ["collect.n_starts=120", "collect.n_goals=6", "train.cycles=2", "train.epochs=1",
         "train.batch_size=64", "train.width=16", "eval.episodes_per_direction=2", "eval.max_steps=6",
-        "eval.long_rollouts=2", "eval.long_max_steps=6", "neighbours.k=8"]
+        "eval.long_rollouts=2", "eval.long_max_steps=6", "neighbours.k=10"]
 # arm-long's lazy Q measures its neighbourhoods in the fingertip's space and fits the state
 # offsets too (the arms' defaults, through the CLI, the resume and the reloads); arm's in
 # joint space with plain Eq. (4) models (the paper's), so that both kinds are run.

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from lazyq_jax.local_model import precompute_projection
-from lazyq_jax.targets import bootstrap_values, dataset_targets, evaluate_in_batches, lazy_target
+from lazyq_jax.targets import (bootstrap_values, dataset_targets, evaluate_in_batches, lazy_target,
+                               local_fits)
 from lazyq_jax.types import Transitions
 
 
@@ -104,3 +105,38 @@ def test_dataset_targets_rejects_bad_idx():
     data, idx = _dataset()
     with pytest.raises(ValueError, match="neighbours_idx"):
         dataset_targets(lambda s, g: g, data, idx[:2], gamma=0.9, action_length=0.1)
+
+
+@pytest.mark.parametrize("goal", ["vector", "angle"])
+def test_local_fits_with_goal_offsets_against_lstsq(goal):
+    """``local_fits(state_offsets, goal_offsets)``: per transition i, least squares of the
+    neighbours' ``y_j = r_j + gamma (1 - done_j) V(s'_j, g_j)`` on ``(1, a_j, s_j - s_i,
+    g_j - g_i)`` (angles wrapped): alpha is the fit at (s_i, g_i) itself (NumPy lstsq in
+    float64), beta its action part; angle goals near +-pi included."""
+    rng = np.random.default_rng(7)
+    n, k = 60, 12
+    s = rng.normal(size=(n, 2)).astype(np.float32)
+    if goal == "vector":
+        g = rng.normal(size=(n, 2)).astype(np.float32)
+    else:
+        g = np.float32(np.pi - 0.6 + 1.2 * rng.random(n))  # around +-pi: the wrap matters
+        g = np.float32(np.mod(g + np.pi, 2 * np.pi) - np.pi)
+    data = Transitions(s=jnp.asarray(s), a=jnp.asarray(rng.uniform(-1, 1, (n, 2)), jnp.float32),
+                       s_next=jnp.asarray(s + 0.1), r=jnp.asarray(rng.normal(size=n), jnp.float32),
+                       g=jnp.asarray(g), done=jnp.zeros(n, bool))
+    idx = rng.integers(0, n, (n, k))
+    v = lambda s_, g_: jnp.sum(s_, -1) * 0.3 + (jnp.sum(g_, -1) if g_.ndim == 2 else jnp.cos(g_))
+    alpha, beta, y_nb = local_fits(v, data, jnp.asarray(idx), gamma=0.9, state_offsets=True,
+                                   goal_offsets=True)
+    y = np.asarray(data.r) + 0.9 * np.asarray(v(data.s_next, data.g))
+    np.testing.assert_allclose(y_nb, y[idx], rtol=1e-6, atol=1e-6)
+    a = np.asarray(data.a, np.float64)
+    for i in range(n):
+        dg = g[idx[i]] - g[i]
+        if goal == "angle":
+            dg = (np.mod(dg + np.pi, 2 * np.pi) - np.pi)[:, None]
+        x = np.concatenate([np.ones((k, 1)), a[idx[i]], s[idx[i]] - s[i], dg], 1)
+        coef = np.linalg.lstsq(x, y[idx[i]], rcond=None)[0]
+        scale = np.abs(coef).max() + np.abs(y[idx[i]]).max()
+        np.testing.assert_allclose(alpha[i], coef[0], atol=2e-3 * scale)
+        np.testing.assert_allclose(beta[i], coef[1:3], atol=2e-3 * scale)

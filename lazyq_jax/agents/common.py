@@ -319,6 +319,11 @@ class Baseline(Agent):
     def actions(self, model: Any, s: jax.Array, g: jax.Array | None) -> jax.Array:
         raise NotImplementedError
 
+    def batch(self, data: Transitions, rows: jax.Array, key: jax.Array, n_valid: jax.Array) -> Any:
+        """The minibatch of ``rows`` that :meth:`update` receives (default: those rows;
+        goal-conditioned agents draw their goals here, from ``key``)."""
+        return take(data, rows)
+
     def sampler(self, data: Transitions, n_valid: jax.Array) -> Sampler:
         """``(draw(key) -> rows, active, extra metrics)``: minibatch rows, whether steps
         update the model at all (a skipped step leaves it as it is) and metrics of the
@@ -368,7 +373,8 @@ class Baseline(Agent):
         def body(model, i):
             step = state.step + i
             k_rows, k_update = jax.random.split(jax.random.fold_in(state.key, step))
-            new, metrics = self.update(model, take(data, draw(k_rows)), k_update, step)
+            batch = self.batch(data, draw(k_rows), jax.random.fold_in(k_rows, 1), n_valid)
+            new, metrics = self.update(model, batch, k_update, step)
             ran = step < self.config.steps  # the surplus steps of the last block: skipped
             return select(ran & active, new, model), (metrics, ran)
 

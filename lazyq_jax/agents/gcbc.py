@@ -30,13 +30,10 @@ Gaussian's.  Acting is the mode, as OGBench's evaluation (``eval_temperature = 0
 the mean projected onto the action set (:func:`~lazyq_jax.agents.common.project`: the
 box clip OGBench applies, ``clip(c u, -c, c)``; on the sphere ``c u / |u|``).
 
-Deviations from OGBench.  The data: every row of :class:`~lazyq_jax.types.Transitions`
-carries one goal, drawn by the task (for the point maze OGBench's value-goal mixture:
-the current state p 0.2, a geometric future state p 0.5, a random state p 0.3), and
-the same rows train every method; OGBench's GCBC imitates towards its own actor goals
-(a uniform future state of the same trajectory, ``actor_p_trajgoal = 1``), so here a
-part of the rows (the random and current-state goals) asks the actor to reach goals
-the behaviour was not heading for.  Inputs are
+Goals, as OGBench's GCBC: on trajectory data (``Transitions.traj_last``, e.g. the point
+maze) every minibatch draws fresh actor goals, a uniform future state of the same
+trajectory (``actor_p_trajgoal = 1``; :mod:`lazyq_jax.agents.goals`, ``goals="auto"``); on
+other data (or ``goals="rows"``) each row's own goal.  Deviations from OGBench.  Inputs are
 :func:`~lazyq_jax.agents.common.observe` (states divided by ``problem.state_scale``,
 angle goals as ``cos, sin``, vector goals as they are); OGBench concatenates the raw
 observation and goal.  The number of steps is ``BaselineConfig.steps`` (OGBench 1M).
@@ -54,7 +51,9 @@ import jax.numpy as jnp
 import optax
 
 from lazyq_jax.agents.base import Problem, Spec
-from lazyq_jax.agents.common import Baseline, BaselineConfig, log_likelihood, observe, project
+from lazyq_jax.agents.common import (Baseline, BaselineConfig, log_likelihood, observe, project,
+                                     take)
+from lazyq_jax.agents.goals import check_goal_source, goal_batches, uses_trajectories
 from lazyq_jax.types import Transitions
 
 # ----------------------------------------------------------------------------- networks
@@ -120,13 +119,23 @@ def actor_stats(problem: Problem, mean: jax.Array, a: jax.Array) -> dict:
 class GCBCConfig(BaselineConfig):
     """:class:`BaselineConfig` with OGBench's ``gcbc`` defaults: ``batch_size`` 1024,
     ``learning_rate`` 3e-4, ``width`` 512 x ``depth`` 4 (hidden dims (512, 512, 512)
-    and the output layer); ``gamma`` (0.99, OGBench's ``discount``) is unused."""
+    and the output layer); ``gamma`` (0.99, OGBench's ``discount``) is unused.
+    ``goals``: where the goals of a minibatch come from: ``"auto"`` (default) OGBench's
+    fresh value and actor goals from the trajectories when the data have them
+    (``Transitions.traj_last``, :mod:`lazyq_jax.agents.goals`), else the rows' own goals;
+    ``"trajectories"`` (required) or ``"rows"``.
+    GCBC uses the actor goals only."""
 
     batch_size: int = 1024
     learning_rate: float = 3e-4
     width: int = 512
     depth: int = 4
     gamma: float = 0.99
+    goals: str = "auto"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_goal_source(self)
 
 
 class GCBC(Baseline):
@@ -142,6 +151,12 @@ class GCBC(Baseline):
         params = {"actor": actor_net(self.config, spec.action_dim).init(
             key, observe(self.problem, ex.s, ex.g))}
         return {"params": params, "opt": self.optimizer.init(params)}
+
+    def batch(self, data, rows, key, n_valid):
+        """The rows with OGBench's actor goals (a uniform future state), or their own goals."""
+        if uses_trajectories(self.config.goals, data, self.name):
+            return goal_batches(data, rows, key, n_valid, self.config.gamma)[1]
+        return take(data, rows)
 
     def loss(self, params: Any, b: Transitions) -> tuple[jax.Array, dict]:
         """``-E[log pi(a | s, g)]`` and its metrics."""

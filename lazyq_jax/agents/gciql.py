@@ -47,14 +47,12 @@ constant ``n_a / 2 log(2 pi)``, so ``L_pi`` differs from OGBench's by the consta
 ``cos(u, a)`` (von Mises-Fisher, ``kappa = 1``) and ``a_pi = c u / |u|``.  Acting:
 ``a_pi`` (OGBench's evaluation uses the mode).
 
-Deviations from OGBench.  OGBench draws two goals per row, ``value_goals`` (current
-state 0.2 / geometric future 0.5 / random 0.3) for ``L_V`` and ``L_Q`` and
-``actor_goals`` (a uniform future state of the same trajectory) for ``L_pi``; here
-each row of :class:`~lazyq_jax.types.Transitions` carries ONE goal (for the point maze
-drawn by the task with the value-goal mixture, before training) and that goal serves
-all three losses, so that every method sees the same rows.  Rewards and masks are the
-data's (the task writes ``r = success - 1``, ``done = success``, OGBench's
-``gc_negative``).  Inputs are :func:`~lazyq_jax.agents.common.observe` (states divided
+Goals, as OGBench's: on trajectory data (``Transitions.traj_last``, e.g. the point maze)
+every minibatch draws fresh ``value_goals`` (for ``L_V`` and ``L_Q``: current state 0.2 / geometric future 0.5 /
+random 0.3, with their ``r = success - 1`` and ``done = success``) and ``actor_goals`` (a
+uniform future state of the same trajectory) from the trajectories
+(:mod:`lazyq_jax.agents.goals`, ``goals="auto"``); on other data (or ``goals="rows"``) each
+row's own goal, reward and ``done`` serve every loss.  Deviations from OGBench.  Inputs are :func:`~lazyq_jax.agents.common.observe` (states divided
 by ``problem.state_scale``, angle goals as ``cos, sin``); steps from
 ``BaselineConfig.steps`` (OGBench 1M); the twin critics are initialised by vmapping
 over two keys (OGBench: ``nn.vmap`` with split rngs, the same distribution).  Only the
@@ -85,8 +83,10 @@ from lazyq_jax.agents.common import (
     observe_action,
     polyak,
     project,
+    take,
 )
 from lazyq_jax.agents.gcbc import actor_mean, actor_net, actor_stats, value_net
+from lazyq_jax.agents.goals import check_goal_source, goal_batches, uses_trajectories
 from lazyq_jax.agents.gcivl import check_bool, expectile_loss
 from lazyq_jax.types import Transitions
 
@@ -97,7 +97,11 @@ class GCIQLConfig(BaselineConfig):
     ``learning_rate`` 3e-4, ``width`` 512 x ``depth`` 4 = hidden (512, 512, 512) and the
     output layer, ``gamma`` 0.99) plus ``tau`` (target rate, 0.005), ``expectile``
     (0.9, in (0, 1)), ``alpha`` (the BC coefficient of DDPG+BC, >= 0: OGBench's
-    point-maze 0.003) and ``layer_norm`` (in ``V`` and ``Q``, True)."""
+    point-maze 0.003) and ``layer_norm`` (in ``V`` and ``Q``, True).
+    ``goals``: where the goals of a minibatch come from: ``"auto"`` (default) OGBench's
+    fresh value and actor goals from the trajectories when the data have them
+    (``Transitions.traj_last``, :mod:`lazyq_jax.agents.goals`), else the rows' own goals;
+    ``"trajectories"`` (required) or ``"rows"``."""
 
     batch_size: int = 1024
     learning_rate: float = 3e-4
@@ -108,6 +112,7 @@ class GCIQLConfig(BaselineConfig):
     expectile: float = 0.9
     alpha: float = 0.003
     layer_norm: bool = True
+    goals: str = "auto"
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -115,6 +120,7 @@ class GCIQLConfig(BaselineConfig):
         check_range(self, "expectile", 0.0, 1.0, lo_open=True, hi_open=True)
         check_range(self, "alpha", 0.0, math.inf)
         check_bool(self, "layer_norm")
+        check_goal_source(self)
 
 
 class GCIQL(Baseline):
@@ -176,16 +182,27 @@ class GCIQL(Baseline):
                             "bc_log_prob": jnp.mean(log_prob),
                             **actor_stats(problem, mean, b.a)}
 
-    def loss(self, params: Any, target_critic: Any, b: Transitions) -> tuple[jax.Array, dict]:
-        """``L_V + L_Q + L_pi`` (see the module docstring) and the metrics."""
+    def batch(self, data, rows, key, n_valid):
+        """``(value batch, actor batch)``: OGBench's goals from the trajectories, or the rows'."""
+        if uses_trajectories(self.config.goals, data, self.name):
+            return goal_batches(data, rows, key, n_valid, self.config.gamma)
+        b = take(data, rows)
+        return b, b
+
+    def loss(self, params: Any, target_critic: Any, b: Transitions,
+             b_actor: Transitions | None = None) -> tuple[jax.Array, dict]:
+        """``L_V + L_Q + L_pi`` (see the module docstring) and the metrics; ``b_actor``: the
+        rows with the actor's goals (default ``b``)."""
         value_loss, value_info = self.value_loss(params, target_critic, b)
         critic_loss, critic_info = self.critic_loss(params, b)
-        actor_loss, actor_info = self.actor_loss(params, b)
+        actor_loss, actor_info = self.actor_loss(params, b if b_actor is None else b_actor)
         return value_loss + critic_loss + actor_loss, {**value_info, **critic_info, **actor_info}
 
     def update(self, model, batch, key, step):
+        """One Adam step; ``batch``: rows, or ``(value rows, actor rows)`` (:meth:`batch`)."""
+        pair = (batch, batch) if isinstance(batch, Transitions) else batch
         grads, metrics = jax.grad(self.loss, has_aux=True)(model["params"],
-                                                           model["target_critic"], batch)
+                                                           model["target_critic"], *pair)
         updates, opt = self.optimizer.update(grads, model["opt"], model["params"])
         params = optax.apply_updates(model["params"], updates)
         # OGBench's target_update: the online parameters before this step's update

@@ -41,15 +41,12 @@ are OGBench's; on the sphere (``"ball"``, not in OGBench) it is ``cos(u, a)``
 (von Mises-Fisher, ``kappa = 1``).  Acting: the mean projected onto the action set
 (OGBench's mode, clipped to the box).
 
-Deviations from OGBench.  OGBench draws two goals per row, ``value_goals`` (the mixture
-current state 0.2 / geometric future 0.5 / random 0.3) for the value loss and
-``actor_goals`` (a uniform future state of the same trajectory) for the actor loss;
-here each row of :class:`~lazyq_jax.types.Transitions` carries ONE goal (for the point
-maze drawn by the task with the value-goal mixture, before training) and that goal
-serves both losses, so that every method sees the same rows: the actor also fits the
-rows whose goal is the current state (there ``A_pi = V(s', s) - V(s, s)`` is about
-``<= 0``: weights of at most about 1) or a random state.  Rewards and masks are the data's (the task writes
-``r = success - 1``, ``done = success``, OGBench's ``gc_negative``).  Inputs are
+Goals, as OGBench's: on trajectory data (``Transitions.traj_last``, e.g. the point maze)
+every minibatch draws fresh ``value_goals`` (current state 0.2 / geometric future 0.5 /
+random 0.3, with their ``r = success - 1`` and ``done = success``) and ``actor_goals`` (a
+uniform future state of the same trajectory) from the trajectories
+(:mod:`lazyq_jax.agents.goals`, ``goals="auto"``); on other data (or ``goals="rows"``) each
+row's own goal, reward and ``done`` serve every loss.  Deviations from OGBench.  Inputs are
 :func:`~lazyq_jax.agents.common.observe` (states divided by ``problem.state_scale``,
 angle goals as ``cos, sin``); the exp-advantage clip 100 is ``max_weight``; steps from
 ``BaselineConfig.steps`` (OGBench 1M); the twin ensemble is initialised by vmapping
@@ -80,8 +77,10 @@ from lazyq_jax.agents.common import (
     observe,
     polyak,
     project,
+    take,
 )
 from lazyq_jax.agents.gcbc import actor_mean, actor_net, actor_stats, value_net
+from lazyq_jax.agents.goals import check_goal_source, goal_batches, uses_trajectories
 from lazyq_jax.types import Transitions
 
 
@@ -106,7 +105,11 @@ class GCIVLConfig(BaselineConfig):
     output layer, ``gamma`` 0.99) plus ``tau`` (target rate, 0.005), ``expectile``
     (0.9, in (0, 1)), ``alpha`` (AWR temperature, 10, >= 0; 0 is plain GCBC),
     ``max_weight`` (clip of ``exp(alpha A)``, 100) and ``layer_norm`` (in the value
-    networks, True)."""
+    networks, True).
+    ``goals``: where the goals of a minibatch come from: ``"auto"`` (default) OGBench's
+    fresh value and actor goals from the trajectories when the data have them
+    (``Transitions.traj_last``, :mod:`lazyq_jax.agents.goals`), else the rows' own goals;
+    ``"trajectories"`` (required) or ``"rows"``."""
 
     batch_size: int = 1024
     learning_rate: float = 3e-4
@@ -118,6 +121,7 @@ class GCIVLConfig(BaselineConfig):
     alpha: float = 10.0
     max_weight: float = 100.0
     layer_norm: bool = True
+    goals: str = "auto"
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -126,6 +130,7 @@ class GCIVLConfig(BaselineConfig):
         check_range(self, "alpha", 0.0, math.inf)
         check_range(self, "max_weight", 0.0, math.inf, lo_open=True)
         check_bool(self, "layer_norm")
+        check_goal_source(self)
 
 
 class GCIVL(Baseline):
@@ -163,6 +168,13 @@ class GCIVL(Baseline):
         return value_loss, {"value_loss": value_loss, "v_mean": jnp.mean(v),
                             "v_max": jnp.max(v), "v_min": jnp.min(v)}
 
+    def batch(self, data, rows, key, n_valid):
+        """``(value batch, actor batch)``: OGBench's goals from the trajectories, or the rows'."""
+        if uses_trajectories(self.config.goals, data, self.name):
+            return goal_batches(data, rows, key, n_valid, self.config.gamma)
+        b = take(data, rows)
+        return b, b
+
     def actor_loss(self, params: Any, b: Transitions):
         cfg = self.config
         value = jax.lax.stop_gradient(params["value"])  # OGBench: the stored parameters
@@ -178,15 +190,19 @@ class GCIVL(Baseline):
                             "bc_log_prob": jnp.mean(log_prob),
                             **actor_stats(self.problem, mean, b.a)}
 
-    def loss(self, params: Any, target_value: Any, b: Transitions) -> tuple[jax.Array, dict]:
-        """``L_V + L_pi`` (see the module docstring) and the metrics."""
+    def loss(self, params: Any, target_value: Any, b: Transitions,
+             b_actor: Transitions | None = None) -> tuple[jax.Array, dict]:
+        """``L_V + L_pi`` (see the module docstring) and the metrics; ``b_actor``: the rows
+        with the actor's goals (default ``b``)."""
         value_loss, value_info = self.value_loss(params, target_value, b)
-        actor_loss, actor_info = self.actor_loss(params, b)
+        actor_loss, actor_info = self.actor_loss(params, b if b_actor is None else b_actor)
         return value_loss + actor_loss, {**value_info, **actor_info}
 
     def update(self, model, batch, key, step):
+        """One Adam step; ``batch``: rows, or ``(value rows, actor rows)`` (:meth:`batch`)."""
+        pair = (batch, batch) if isinstance(batch, Transitions) else batch
         grads, metrics = jax.grad(self.loss, has_aux=True)(model["params"],
-                                                           model["target_value"], batch)
+                                                           model["target_value"], *pair)
         updates, opt = self.optimizer.update(grads, model["opt"], model["params"])
         params = optax.apply_updates(model["params"], updates)
         # OGBench's target_update: the online parameters before this step's update

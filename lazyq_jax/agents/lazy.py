@@ -69,7 +69,23 @@ class LazyAgent(Agent):
 
     # --- training
     def init(self, key, data: Transitions):
+        self.check_k(data)
         return self.trainer.init(key, data)
+
+    def check_k(self, data: Transitions) -> None:
+        """``ValueError`` when ``k`` is below the local model's number of coefficients
+        (``1 + n_a``, ``+ d_s`` with state offsets, ``+ d_g`` (1 for an angle) with goal
+        offsets): such fits are underdetermined and only the ridge would pick beta."""
+        nb = self.config.neighbours
+        coef = 1 + np.shape(data.a)[-1]
+        if nb.local_model != "action":
+            coef += np.shape(data.s)[-1]
+        if nb.local_model == "action+state+goal" and data.g is not None:
+            coef += 1 if np.ndim(data.g) == 1 else np.shape(data.g)[-1]
+        if nb.k < coef:
+            raise ValueError(f"neighbours.k={nb.k} is below the {coef} coefficients of the local "
+                             f"model {nb.local_model!r} on these data; raise k or choose a smaller "
+                             "local_model")
 
     def refresh(self, block: int) -> bool:
         return self.config.train.resample_neighbours

@@ -23,6 +23,7 @@ from jax.sharding import Mesh
 
 from lazyq_jax.agents.base import Problem
 from lazyq_jax.config import Config
+from lazyq_jax.data import DatasetError
 from lazyq_jax.keys import purpose_key
 from lazyq_jax.tasks.base import (CORRECT, NOT_PUSHED, Evaluation, Protocol, Task, make_protocol,
                                   run_protocol, seed_acts)
@@ -49,7 +50,15 @@ def collect_steps(key: jax.Array, collect: PointMazeCollectConfig, progress: boo
     """One seed's trajectories as transitions (:func:`trajectory_transitions`): the file
     ``collect.dataset`` if set, else the navigate recipe drawn from ``key``."""
     if collect.dataset is not None:
-        return trajectory_transitions(load_npz(collect.dataset))
+        raw = load_npz(collect.dataset)
+        maze = get_maze(collect.maze)
+        cells = maze.xy_to_ij(raw["observations"])
+        rows, cols = maze.map.shape
+        inside = ((cells >= 0).all(-1) & (cells[:, 0] < rows) & (cells[:, 1] < cols))
+        if not inside.all() or (maze.map[cells[inside, 0], cells[inside, 1]] != 0).any():
+            raise DatasetError(f"{collect.dataset}: observations lie outside the free cells of the "
+                               f"{collect.maze} maze; is it another maze's file? (collect.maze)")
+        return trajectory_transitions(raw)
     raw = navigate(get_maze(collect.maze), seed_rng(key), collect.episodes, collect.episode_steps,
                    collect.noise, progress=progress)
     return trajectory_transitions(raw)
@@ -150,7 +159,8 @@ class PointMazeTask(Task):
         return Problem(action_length=1.0, action_set="box", state_scale=1.0)
 
     def method_defaults(self, name: str) -> dict:
-        """OGBench's published settings for its baselines (3 x 512 + LayerNorm, batch 1024)."""
+        """OGBench's published network and batch sizes (3 x 512 hidden, batch 1024), for every
+        baseline on this task (OGBench's own and the project's other baselines alike)."""
         return {"width": 512, "depth": 4, "batch_size": 1024}
 
     def collect(self, key, config: Config, *, mesh: Mesh | None = None, progress: bool = True

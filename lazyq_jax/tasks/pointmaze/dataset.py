@@ -19,8 +19,10 @@
   the trajectory's last transition) with ``p_traj``, a uniformly random transition's state with
   ``p_rand``; ``success = (goal index == index)``, ``r = success - 1``, ``done = success``.
   OGBench draws fresh goals for every minibatch; lazy Q's neighbourhoods need a fixed dataset,
-  so every method here sees the same ``goals_per_transition`` relabelled copies of each
-  transition.
+  so lazy Q trains on ``goals_per_transition`` relabelled copies of each transition; the
+  rows keep their trajectory (``Transitions.traj_last``), and OGBench's agents draw fresh
+  value and actor goals from the same trajectories every minibatch, as OGBench does
+  (:mod:`lazyq_jax.agents.goals`).
 """
 
 from __future__ import annotations
@@ -40,9 +42,10 @@ NPZ_KEYS = ("observations", "actions", "terminals")
 def navigate(maze: Maze, rng: np.random.Generator, episodes: int, steps: int = 1001,
              noise: float = 0.5, progress: bool = False) -> dict[str, np.ndarray]:
     """``episodes`` navigate episodes of ``steps`` env steps, in OGBench's file format:
-    ``observations, actions, qpos, qvel [episodes * steps, 2]`` (float32), ``terminals``
-    (bool, the last step of each episode); also ``goals`` (the goal being pursued) and
-    ``successes`` (reached after the step), for statistics."""
+    ``observations, actions, qpos [episodes * steps, 2]`` (float32), ``terminals`` (bool, the
+    last step of each episode); also ``goals`` (the goal being pursued) and ``successes``
+    (reached after the step), for statistics.  OGBench's files also hold ``qvel`` (the
+    velocity left by the previous step's contacts); nothing here reads it, so it is not made."""
     free, vertex = np.asarray(maze.free), np.asarray(maze.vertex)
     xy = maze.noisy(rng, free[rng.integers(len(free), size=episodes)])
     goal = maze.noisy(rng, vertex[rng.integers(len(vertex), size=episodes)])
@@ -63,8 +66,7 @@ def navigate(maze: Maze, rng: np.random.Generator, episodes: int, steps: int = 1
     flat = lambda x: x.reshape(episodes * steps, *x.shape[2:])
     f32 = lambda x: flat(x).astype(np.float32)
     return {"observations": f32(obs), "actions": f32(acts), "terminals": flat(terminals),
-            "qpos": f32(obs), "qvel": np.zeros((episodes * steps, 2), np.float32),
-            "goals": f32(goals), "successes": flat(successes)}
+            "qpos": f32(obs), "goals": f32(goals), "successes": flat(successes)}
 
 
 def save_npz(path: str | Path, dataset: dict[str, np.ndarray]) -> Path:
@@ -140,6 +142,8 @@ def relabel(rng: np.random.Generator, steps: dict[str, np.ndarray], goals_per_tr
     goal_idx = np.where(use_cur, idx, goal_idx)
     kind = np.where(use_cur, 0, np.where(use_traj, 1, 2)).astype(np.int8)
     success = goal_idx == idx
+    copy = np.repeat(np.arange(goals_per_transition), n) * n  # each copy keeps its trajectories
     data = Transitions(s=s[idx], a=steps["a"][idx], s_next=steps["s_next"][idx],
-                       r=success.astype(np.float32) - 1.0, g=s[goal_idx], done=success)
+                       r=success.astype(np.float32) - 1.0, g=s[goal_idx], done=success,
+                       traj_last=(copy + last[idx]).astype(np.int32))
     return data, kind

@@ -1,0 +1,113 @@
+"""OGBench's pointmaze at an equal CPU budget: lazy Q and the goal-conditioned baselines on the
+same data, seeds and evaluation, each trained for the same wall-clock time on this machine.
+
+1. ``study --task pointmaze --methods lazy`` (the task's ``paper`` preset, or ``--set``
+   overrides): its training seconds (``lazy/timings.json``, neighbour search included) are the
+   budget, unless ``--seconds`` gives one.
+2. Each baseline's gradient steps per second at OGBench's settings (3 x 512, batch 1024) on
+   this machine: one block of ``--calibrate`` steps after compilation, on seed 0's dataset,
+   all seeds vmapped as in the study.
+3. The baselines trained for ``budget x steps/s`` steps into the same run directory
+   (``--resume``: finished methods are kept), then one table.
+
+    .venv/bin/python experiments/pointmaze_budget.py --run-dir runs/pointmaze_budget --seeds 1
+    .venv/bin/python experiments/pointmaze_budget.py --run-dir R --seconds 600 --methods gcivl,gcbc
+
+OGBench trains 1M steps of batch 1024; the fraction of that budget each baseline got is in the
+table.  Results: docs/pointmaze.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from lazyq_jax import agents, tasks
+from lazyq_jax.config import override
+from lazyq_jax.run import run
+from lazyq_jax.run.sources import static_data
+from lazyq_jax.stats import format_ci
+
+OGBENCH_STEPS = 1_000_000
+
+
+def steps_per_second(spec: str, config, task, sd, calibrate: int) -> float:
+    """Gradient steps per second of baseline ``spec`` (``name[:field=value...]``) with the
+    task's settings and the spec's options, all seeds."""
+    name, *options = spec.split(":")
+    cls = agents.config_class(name)
+    cfg = cls(steps=calibrate, blocks=1, gamma=config.train.gamma, **task.method_defaults(name))
+    cfg = override(cfg, options)
+    agent = agents.make(name, cfg, problem=task.problem(config))
+    data, n_valid = sd.stacked, sd.n_valid
+    keys = jax.random.split(jax.random.PRNGKey(0), len(n_valid))
+    init = jax.jit(jax.vmap(agent.init))
+    block = jax.jit(jax.vmap(lambda st, d, n: agent.run_block(st, d, None, n)))
+    state = init(keys, data)
+    jax.block_until_ready(block(state, data, n_valid))  # compile
+    t = time.perf_counter()
+    jax.block_until_ready(block(state, data, n_valid))
+    return calibrate / (time.perf_counter() - t)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--run-dir", default="runs/pointmaze_budget")
+    p.add_argument("--seeds", type=int, default=1)
+    p.add_argument("--methods", default="gcivl,gciql,gcbc",
+                   help="baselines, each with options if wanted (gcivl:width=128)")
+    p.add_argument("--seconds", type=float, default=None, help="budget (default: lazy Q's training time)")
+    p.add_argument("--calibrate", type=int, default=20, help="steps timed per baseline")
+    p.add_argument("--set", action="append", default=[], dest="sets", metavar="FIELD=VALUE")
+    args = p.parse_args()
+    run_dir = Path(args.run_dir)
+    seeds = list(range(args.seeds))
+    config = override(tasks.preset("pointmaze", "paper"), args.sets)
+    task = tasks.get("pointmaze")
+
+    run(config, run_dir, seeds=seeds, methods=["lazy"], resume=True, progress=False)
+    lazy_timing = json.loads((run_dir / "lazy" / "timings.json").read_text())
+    # lazy Q's training time includes its neighbour search and its first cycle's compilation;
+    # the baselines get that many seconds of compiled steps (their compilation is extra)
+    budget = (lazy_timing["train_s"] + lazy_timing.get("prepare_s", 0.0) if args.seconds is None
+              else args.seconds)
+    print(f"budget: {budget:.0f} s of training per method ({len(seeds)} seed(s) together)")
+
+    sd = static_data(task, config, run_dir, seeds, progress=False)
+    specs, fractions = [], {}
+    for spec in args.methods.split(","):
+        rate = steps_per_second(spec, config, task, sd, args.calibrate)
+        steps = max(1, int(budget * rate))
+        fractions[spec] = steps / OGBENCH_STEPS
+        print(f"{spec}: {rate:.2f} steps/s -> {steps} steps ({fractions[spec]:.2%} of OGBench's 1M)",
+              flush=True)
+        specs.append(f"{spec}:steps={steps}")
+    (run_dir / "budget.json").write_text(json.dumps(
+        {"budget_s": budget, "calibrate_steps": args.calibrate, "specs": specs,
+         "ogbench_fraction": fractions}, indent=1))
+    run(config, run_dir, seeds=seeds, methods=["lazy", *specs], resume=True, progress=False)
+
+    results = json.loads((run_dir / "results.json").read_text())
+    print(f"\npointmaze ({config.collect.maze}), seeds {seeds}: success rate over OGBench's 5 tasks")
+    print("| method | success | task 1 | task 2 | task 3 | task 4 | task 5 | training s |")
+    print("|---|---|---|---|---|---|---|---|")
+    for spec, m in results["methods"].items():
+        rows = m["per_seed"]
+        cells = []
+        for key in ("success_rate", "task1", "task2", "task3", "task4", "task5"):
+            if key in m["summary"]:
+                cells.append(format_ci(m["summary"][key]))
+            elif all(key in r for r in rows):
+                cells.append(f"{np.mean([r[key] for r in rows]):.1%}")
+            else:
+                cells.append("–")
+        print(f"| {spec} | " + " | ".join(cells) + f" | {m['timings'].get('train_s', 0):.0f} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,95 @@
+"""OGBench's goal sampling for goal-conditioned agents, in JAX (Park et al. 2024,
+``impls/utils/datasets.py: GCDataset.sample`` and ``sample_goals``).
+
+For a minibatch of rows ``idx`` of trajectory data (``Transitions.traj_last``: the row of
+each row's trajectory's last transition), a goal index per row:
+
+* with ``p_cur`` the row itself (its own state: a success);
+* else with ``p_traj / (1 - p_cur)`` a later row of the same trajectory: at a geometric
+  offset ``Geom(1 - discount)`` (``>= 1``) clipped to the trajectory's last row
+  (``geom=True``), or uniformly between the next row and the last
+  (``round(min(idx + 1, last) d + last (1 - d))``, ``d ~ U[0, 1)``);
+* else a uniformly random row.
+
+The goal is that row's state; ``success = (goal index == idx)``, ``r = success - 1``,
+``done = success`` (OGBench's ``gc_negative``; ``masks = 1 - success``).  OGBench's
+defaults, used by its GCIVL, GCIQL and GCBC: value goals ``(0.2, 0.5, geometric)``, actor
+goals ``(0, 1, uniform)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from lazyq_jax.config import ConfigError
+from lazyq_jax.types import Transitions
+
+GOAL_SOURCES = ("auto", "trajectories", "rows")
+
+
+@dataclasses.dataclass(frozen=True)
+class GoalMix:
+    """One of OGBench's goal distributions (module docstring)."""
+
+    p_cur: float
+    p_traj: float
+    geom: bool
+
+
+VALUE_GOALS = GoalMix(p_cur=0.2, p_traj=0.5, geom=True)
+ACTOR_GOALS = GoalMix(p_cur=0.0, p_traj=1.0, geom=False)
+
+
+def check_goal_source(obj, name: str = "goals") -> None:
+    value = getattr(obj, name)
+    if value not in GOAL_SOURCES:
+        raise ConfigError(f"{type(obj).__name__}.{name} must be one of {GOAL_SOURCES}, got {value!r}")
+
+
+def uses_trajectories(source: str, data: Transitions, who: str) -> bool:
+    """Whether an agent draws its goals from the trajectories (``source`` ``"auto"``: when the
+    data have them; ``"trajectories"`` requires them; ``"rows"``: the rows' own goals)."""
+    if source == "trajectories" and data.traj_last is None:
+        raise ValueError(f"{who}: goals='trajectories' needs trajectory data (Transitions.traj_last); "
+                         "these data have none: use goals='rows' (the rows' own goals)")
+    use = source != "rows" and data.traj_last is not None and data.g is not None
+    if use and (data.g.ndim != 2 or data.g.shape[1] != data.s.shape[1]):
+        raise ValueError(f"{who}: goals drawn from trajectories are states, but the goals are "
+                         f"{tuple(data.g.shape)} and the states {tuple(data.s.shape)}; use goals='rows'")
+    return use
+
+
+def sample_goal_rows(key: jax.Array, idx: jax.Array, last: jax.Array, n_valid: jax.Array,
+                     mix: GoalMix, discount: float) -> jax.Array:
+    """Goal rows ``[B]`` for rows ``idx [B]`` (``last``: ``traj_last`` of the data), as
+    ``GCDataset.sample_goals`` (module docstring); random goals among the rows ``< n_valid``."""
+    k_rand, k_off, k_traj, k_cur = jax.random.split(key, 4)
+    final = last[idx]
+    rand = jax.random.randint(k_rand, idx.shape, 0, jnp.maximum(n_valid, 1))
+    if mix.geom:
+        offsets = jax.random.geometric(k_off, 1.0 - discount, idx.shape, dtype=jnp.int32)
+        traj = jnp.minimum(idx + offsets, final)
+    else:
+        d = jax.random.uniform(k_off, idx.shape)
+        traj = jnp.round(jnp.minimum(idx + 1, final) * d + final * (1.0 - d)).astype(idx.dtype)
+    if mix.p_cur >= 1.0:
+        return idx
+    goal = jnp.where(jax.random.uniform(k_traj, idx.shape) < mix.p_traj / (1.0 - mix.p_cur), traj, rand)
+    return jnp.where(jax.random.uniform(k_cur, idx.shape) < mix.p_cur, idx, goal)
+
+
+def goal_batches(data: Transitions, idx: jax.Array, key: jax.Array, n_valid: jax.Array,
+                 discount: float, value: GoalMix = VALUE_GOALS, actor: GoalMix = ACTOR_GOALS
+                 ) -> tuple[Transitions, Transitions]:
+    """``(value batch, actor batch)`` of rows ``idx``: their transitions with fresh value goals
+    (and the reward and ``done`` of those goals) and with fresh actor goals."""
+    k_value, k_actor = jax.random.split(key)
+    rows = jax.tree.map(lambda x: x[idx], data)
+    g_value = sample_goal_rows(k_value, idx, data.traj_last, n_valid, value, discount)
+    g_actor = sample_goal_rows(k_actor, idx, data.traj_last, n_valid, actor, discount)
+    success = g_value == idx
+    value_batch = rows.replace(g=data.s[g_value], r=success.astype(jnp.float32) - 1.0, done=success)
+    return value_batch, rows.replace(g=data.s[g_actor])
