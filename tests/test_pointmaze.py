@@ -219,7 +219,7 @@ def cli(*args, timeout=900):
 
 GCIVL = "gcivl:steps=4:width=16:batch_size=32"
 TINY = ["collect.episodes=12", "collect.episode_steps=61", "eval.episodes_per_task=2",
-        "eval.max_steps=20", "train.cycles=2", "neighbours.k=6"]
+        "eval.max_steps=20", "train.cycles=2", "neighbours.k=8"]
 
 
 def test_the_task_through_the_cli(tmp_path):

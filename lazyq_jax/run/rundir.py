@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import re
 import shutil
 from pathlib import Path
@@ -38,10 +39,14 @@ class RunDirError(ValueError):
 
 
 def write_json(path: Path, data: Any, indent: int | None = 1) -> None:
-    """Write JSON (process 0 only; the others return)."""
+    """Write JSON (process 0 only; the others return), atomically: a temporary file renamed
+    into place, so that another process reading it (a multi-host run shares the directory)
+    sees the old or the new file, never a half-written one."""
     if is_main_process():
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(data, indent=indent))
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(json.dumps(data, indent=indent))
+        os.replace(tmp, path)
 
 
 def as_json(data: Any) -> Any:

@@ -85,9 +85,11 @@ def check(config: Config) -> None:
 # steps at 0.2 per step), one step per cycle: many short cycles (one epoch each) rather than
 # the paper's 10 x 10.  Neighbourhoods in (state, goal) space: 0.5 in x, y (2.5 steps) and
 # 1.0 in the goal (OGBench's success radius); 93 % of the transitions have k = 20 members at
-# level 0 on the default data.  Local models with state offsets (the value changes by ~5 per
-# unit across a neighbourhood).
-_NEIGHBOURS = NeighbourConfig(k=20, radius_s=0.5, radius_g=1.0, max_level=8, local_model="action+state")
+# level 0 on the default data.  Local models with state and goal offsets (the value changes by
+# ~5 per unit across the state and the goal ball, an action by one step): seed 0, 58.0 % of
+# OGBench's evaluation against 22.4 % with state offsets only (docs/pointmaze.md).
+_NEIGHBOURS = NeighbourConfig(k=20, radius_s=0.5, radius_g=1.0, max_level=8,
+                              local_model="action+state+goal")
 _TRAIN = TrainConfig(gamma=0.99, cycles=300, epochs=1, batch_size=4096, learning_rate=1e-3)
 _SMOKE_TRAIN = TrainConfig(gamma=0.99, cycles=3, epochs=1, batch_size=256, target_batch_size=4096)
 
