@@ -99,7 +99,9 @@ def main() -> None:
     (run_dir / "budget.json").write_text(json.dumps(
         {"budget_s": budget, "calibrate_steps": args.calibrate, "specs": specs,
          "ogbench_fraction": fractions}, indent=1))
-    run(config, run_dir, seeds=seeds, methods=["lazy", *specs], resume=True, progress=False)
+    # with --seconds lazy Q need not be in this run directory (nor is it trained here)
+    methods = specs if args.seconds is not None else ["lazy", *specs]
+    run(config, run_dir, seeds=seeds, methods=methods, resume=True, progress=False)
 
     results = json.loads((run_dir / "results.json").read_text())
     print(f"\npointmaze ({config.collect.maze}), seeds {seeds}: success rate over OGBench's 5 tasks")

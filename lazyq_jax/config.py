@@ -65,9 +65,9 @@ class NeighbourConfig:
     the weight of the joint angles beside the fingertip).  ``local_model``: ``"action"``
     (Eq. 4-6: ``alpha + beta . a`` over each neighbourhood) or ``"action+state"`` (also
     each neighbour's state offset from the centre as a covariate: ``alpha + beta . a +
-    gamma . (s_j - s)``) or ``"action+state+goal"`` (and the goal offset ``g_j - g``, wrapped for
-    angles: where the value changes across the goal ball, e.g. vector goals in a maze).  The tasks set the radii of their own spaces (e.g. radians in
-    joint space)."""
+    gamma . (s_j - s)``) or ``"action+state+goal"`` (and the goal offset ``g_j - g``,
+    wrapped for angles: where the value changes across the goal ball, e.g. vector goals in
+    a maze).  The tasks set the radii of their own spaces (e.g. radians in joint space)."""
 
     k: int = 20
     radius_s: float = 0.06

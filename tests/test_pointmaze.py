@@ -17,7 +17,9 @@ import pytest
 from lazyq_jax import agents, tasks
 from lazyq_jax.config import ConfigError, override
 from lazyq_jax.data import DatasetError, load_dataset, save_dataset
+from lazyq_jax.keys import purpose_key
 from lazyq_jax.run import load_policy
+from lazyq_jax.run.sources import dataset_meta, seed_dataset
 from lazyq_jax.tasks.base import CORRECT, run_protocol, seed_acts
 from lazyq_jax.tasks.pointmaze import (get_maze, load_npz, navigate, oracle_action, relabel,
                                        save_npz, task_protocol, trajectory_transitions)
@@ -302,3 +304,18 @@ def test_lazy_refuses_underdetermined_local_models():
     ok = override(cfg, ["neighbours.k=7"])
     agents.make("lazy", agents.LazyConfig(train=ok.train, neighbours=ok.neighbours),
                 problem=task.problem(ok)).check_k(data)
+
+
+def test_a_cached_dataset_without_trajectories_is_collected_anew(tmp_path):
+    """pointmaze's rows carry their trajectories (data_version 2): a run directory's dataset
+    cached before (no traj_last, meta without the version) is collected again, not reused
+    (OGBench's agents would silently lose their goal sampling on it)."""
+    task = tasks.get("pointmaze")
+    cfg = override(tasks.preset("pointmaze", "smoke"), TINY[:2])
+    old = task.collect(purpose_key(0, "collect"), cfg, progress=False).replace(traj_last=None)
+    path = tmp_path / "data" / "0" / "dataset.npz"
+    save_dataset(path, old, dataset_meta(cfg, 0))
+    data, _ = seed_dataset(task, cfg, tmp_path, 0, progress=False)
+    assert data.traj_last is not None
+    _, meta = load_dataset(path)
+    assert meta == dataset_meta(cfg, 0, 2) and meta["data_version"] == 2

@@ -52,10 +52,14 @@ class SeedData:
         return jax.tree.map(lambda x: x[i, : int(self.n_valid[i])], self.stacked)
 
 
-def dataset_meta(config: Config, seed: int) -> dict:
+def dataset_meta(config: Config, seed: int, data_version: int = 1) -> dict:
     """What a seed's static dataset is made from (as JSON gives it back): a cached file must
-    match it."""
-    return as_json({"task": config.task, "collect": to_dict(config.collect), "seed": int(seed)})
+    match it.  ``data_version``: the task's (:attr:`~lazyq_jax.tasks.base.Task.data_version`),
+    recorded when above 1, so that a task whose data gained a field re-collects old caches."""
+    meta = {"task": config.task, "collect": to_dict(config.collect), "seed": int(seed)}
+    if data_version != 1:
+        meta["data_version"] = int(data_version)
+    return as_json(meta)
 
 
 def seed_dataset(task: Task, config: Config, run_dir: Path, seed: int, *, mesh: Mesh | None = None,
@@ -63,7 +67,7 @@ def seed_dataset(task: Task, config: Config, run_dir: Path, seed: int, *, mesh: 
     """``data/<seed>/dataset.npz`` if it holds this task's data of this config and seed, else
     collected (with the seed's ``collect`` key) and saved there; and its summary."""
     path = run_dir / "data" / str(seed) / "dataset.npz"
-    meta = dataset_meta(config, seed)
+    meta = dataset_meta(config, seed, task.data_version)
     if path.exists():
         try:
             data, stored = load_dataset(path)

@@ -171,6 +171,9 @@ class Task:
       directions: whether :meth:`seed_rates` also gives ``per_direction_correct_rate``
         (goal directions of a protocol A), drawn per method in the study.
       online: whether the online data source works (:meth:`explore`).
+      data_version: the version of what :meth:`collect` returns; a run directory's cached
+        dataset of another version is collected anew (e.g. rows that gained
+        ``Transitions.traj_last``).
     """
 
     name: str = "task"
@@ -181,6 +184,7 @@ class Task:
     rates: tuple[tuple[str, str], ...] = ()
     directions: bool = False
     online: bool = False
+    data_version: int = 1
 
     # --- configuration
     def check(self, config: Config) -> None:

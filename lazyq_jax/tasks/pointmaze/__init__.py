@@ -145,6 +145,7 @@ class PointMazeTask(Task):
     summary = "OGBench's pointmaze-medium-navigate: a point in a maze, vector goals, box actions"
     collect_config = PointMazeCollectConfig
     eval_config = PointMazeEvalConfig
+    data_version = 2  # the rows carry their trajectories (Transitions.traj_last)
     rates = (("success_rate", "success (5 tasks)"),
              *((f"task{i}", f"task {i}") for i in range(1, N_TASKS + 1)))
 
