@@ -51,9 +51,8 @@ import jax.numpy as jnp
 import optax
 
 from lazyq_jax.agents.base import Problem, Spec
-from lazyq_jax.agents.common import (Baseline, BaselineConfig, log_likelihood, observe, project,
-                                     take)
-from lazyq_jax.agents.goals import check_goal_source, goal_batches, uses_trajectories
+from lazyq_jax.agents.common import Baseline, BaselineConfig, log_likelihood, observe, project
+from lazyq_jax.agents.goals import check_goal_source, minibatches
 from lazyq_jax.types import Transitions
 
 # ----------------------------------------------------------------------------- networks
@@ -154,9 +153,8 @@ class GCBC(Baseline):
 
     def batch(self, data, rows, key, n_valid):
         """The rows with OGBench's actor goals (a uniform future state), or their own goals."""
-        if uses_trajectories(self.config.goals, data, self.name):
-            return goal_batches(data, rows, key, n_valid, self.config.gamma)[1]
-        return take(data, rows)
+        return minibatches(self.config.goals, data, rows, key, n_valid, self.config.gamma,
+                           self.name)[1]
 
     def loss(self, params: Any, b: Transitions) -> tuple[jax.Array, dict]:
         """``-E[log pi(a | s, g)]`` and its metrics."""

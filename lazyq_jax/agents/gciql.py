@@ -83,10 +83,9 @@ from lazyq_jax.agents.common import (
     observe_action,
     polyak,
     project,
-    take,
 )
 from lazyq_jax.agents.gcbc import actor_mean, actor_net, actor_stats, value_net
-from lazyq_jax.agents.goals import check_goal_source, goal_batches, uses_trajectories
+from lazyq_jax.agents.goals import check_goal_source, minibatches
 from lazyq_jax.agents.gcivl import check_bool, expectile_loss
 from lazyq_jax.types import Transitions
 
@@ -184,10 +183,7 @@ class GCIQL(Baseline):
 
     def batch(self, data, rows, key, n_valid):
         """``(value batch, actor batch)``: OGBench's goals from the trajectories, or the rows'."""
-        if uses_trajectories(self.config.goals, data, self.name):
-            return goal_batches(data, rows, key, n_valid, self.config.gamma)
-        b = take(data, rows)
-        return b, b
+        return minibatches(self.config.goals, data, rows, key, n_valid, self.config.gamma, self.name)
 
     def loss(self, params: Any, target_critic: Any, b: Transitions,
              b_actor: Transitions | None = None) -> tuple[jax.Array, dict]:

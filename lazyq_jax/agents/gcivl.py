@@ -77,10 +77,9 @@ from lazyq_jax.agents.common import (
     observe,
     polyak,
     project,
-    take,
 )
 from lazyq_jax.agents.gcbc import actor_mean, actor_net, actor_stats, value_net
-from lazyq_jax.agents.goals import check_goal_source, goal_batches, uses_trajectories
+from lazyq_jax.agents.goals import check_goal_source, minibatches
 from lazyq_jax.types import Transitions
 
 
@@ -170,10 +169,7 @@ class GCIVL(Baseline):
 
     def batch(self, data, rows, key, n_valid):
         """``(value batch, actor batch)``: OGBench's goals from the trajectories, or the rows'."""
-        if uses_trajectories(self.config.goals, data, self.name):
-            return goal_batches(data, rows, key, n_valid, self.config.gamma)
-        b = take(data, rows)
-        return b, b
+        return minibatches(self.config.goals, data, rows, key, n_valid, self.config.gamma, self.name)
 
     def actor_loss(self, params: Any, b: Transitions):
         cfg = self.config

@@ -81,6 +81,17 @@ def sample_goal_rows(key: jax.Array, idx: jax.Array, last: jax.Array, n_valid: j
     return jnp.where(jax.random.uniform(k_cur, idx.shape) < mix.p_cur, idx, goal)
 
 
+def minibatches(source: str, data: Transitions, idx: jax.Array, key: jax.Array,
+                n_valid: jax.Array, discount: float, who: str) -> tuple[Transitions, Transitions]:
+    """``(value batch, actor batch)`` of rows ``idx`` for a goal-conditioned agent: OGBench's
+    fresh goals from the trajectories (:func:`goal_batches`) if ``source`` and the data say so
+    (:func:`uses_trajectories`), else the rows as they are, twice."""
+    if uses_trajectories(source, data, who):
+        return goal_batches(data, idx, key, n_valid, discount)
+    rows = jax.tree.map(lambda x: x[idx], data)
+    return rows, rows
+
+
 def goal_batches(data: Transitions, idx: jax.Array, key: jax.Array, n_valid: jax.Array,
                  discount: float, value: GoalMix = VALUE_GOALS, actor: GoalMix = ACTOR_GOALS
                  ) -> tuple[Transitions, Transitions]:
