@@ -42,9 +42,9 @@ from lazyq_jax.keys import purpose_key
 from lazyq_jax.parallel import is_main_process, make_mesh, over_seeds, put, replicated
 from lazyq_jax.plots import online_curve
 from lazyq_jax.run.results import earlier_methods, write_results
-from lazyq_jax.run.rundir import (MethodSpec, RunDirError, append_jsonl, check_methods, check_seeds,
-                                  keep_jsonl, open_method, open_run, parse_method, read_jsonl,
-                                  write_json)
+from lazyq_jax.run.rundir import (MethodSpec, RunDirError, append_jsonl, as_json, check_methods,
+                                  check_seeds, keep_jsonl, open_method, open_run, parse_method,
+                                  read_jsonl, write_json)
 from lazyq_jax.run.sources import OnlineRounds, SeedData, log, static_data
 from lazyq_jax.tasks import Task
 from lazyq_jax.train import check_mesh
@@ -277,12 +277,18 @@ def _round_end(ctx: Context, agent: Agent, online: OnlineRounds, states, sd: See
 # ----------------------------------------------------------------------------- evaluation
 
 
+def eval_stamp(config: Config, block: int, seeds: Sequence[int]) -> dict:
+    """What an ``eval.json`` was made from, as JSON gives it back (tuples as lists), so that a
+    stored evaluation compares equal to the stamp of the same settings and is reused."""
+    return as_json({"eval": to_dict(config.eval), "block": int(block), "seeds": [int(s) for s in seeds]})
+
+
 def evaluate_method(ctx: Context, agent: Agent, spec: MethodSpec, method_dir: Path, states,
                     sd: SeedData, *, block: int, force: bool = False, figures: bool = True) -> list[dict]:
     """The task's evaluation of every seed (``eval.json``), reused when it was made with the
     same evaluation settings from the same checkpoint; figures and an animation of seed 0."""
     path = method_dir / "eval.json"
-    stamp = {"eval": to_dict(ctx.config.eval), "block": block, "seeds": list(ctx.seeds)}
+    stamp = eval_stamp(ctx.config, block, ctx.seeds)
     if not force and path.exists():
         stored = json.loads(path.read_text())
         if {k: stored.get(k) for k in stamp} == stamp:
