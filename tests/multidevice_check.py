@@ -19,7 +19,8 @@ import numpy as np  # noqa: E402
 
 from lazyq_jax.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
 from lazyq_jax.config import ConfigError, ParallelConfig, TrainConfig  # noqa: E402
-from lazyq_jax.neighbours import build_index, search_all  # noqa: E402
+from lazyq_jax.neighbours import build_index, find_neighbours, search_all  # noqa: E402
+from lazyq_jax.neighbours.nd import build_index_nd, search_all_nd  # noqa: E402
 from lazyq_jax.parallel import make_mesh, put, replicated  # noqa: E402
 from lazyq_jax.targets import lazy_target, local_fits  # noqa: E402
 from lazyq_jax.tasks.push import CollectConfig  # noqa: E402
@@ -61,6 +62,35 @@ def check_search_bitwise():
             np.testing.assert_array_equal(a, b, err_msg=f"search on {n} devices")
     print("search: 3001 queries (levels up to "
           f"{int(np.asarray(ref.level).max())}) bitwise equal on 1 (no mesh), 1, 2 and 4 devices")
+
+
+def check_search_general_spaces_bitwise():
+    """The general engine (any d_s; angle, vector and no goals): its chunks run 4 at a time on
+    4 devices give bitwise the one-device neighbourhoods, levels > 3 included."""
+    rng = np.random.default_rng(3)
+    s = rng.uniform(-1, 1, (2500, 3)).astype(np.float32)
+    s[:250] *= 5  # sparse points that need several growth passes
+    goals = {"angle": rng.uniform(-np.pi, np.pi, 2500).astype(np.float32),
+             "vector": rng.uniform(-1, 1, (2500, 2)).astype(np.float32), "none": None}
+    key = jax.random.PRNGKey(4)
+    for kind, g in goals.items():
+        index = build_index_nd(s, g, k=10, radius_s=0.1, radius_g=0.3)
+        stats = {}
+        # small chunks: the first pass has several per device
+        ref = search_all_nd(index, key, s, g, chunk_items=512, stats=stats)
+        assert int(np.asarray(ref.level).max()) > 3, f"{kind}: no query grew past level 3"
+        assert stats["passes"][0]["chunks"] >= 8, stats["passes"][0]
+        out = search_all_nd(index, key, s, g, chunk_items=512, mesh=MESHES[4])
+        for a, b in zip(leaves(ref), leaves(out)):
+            np.testing.assert_array_equal(a, b, err_msg=f"general search ({kind}) on 4 devices")
+    # find_neighbours takes the mesh for general spaces too (its own chunking, 2 devices)
+    g = goals["vector"]
+    via = find_neighbours(key, s, g, s, g, k=10, radius_s=0.1, radius_g=0.3, mesh=MESHES[2])
+    ref = find_neighbours(key, s, g, s, g, k=10, radius_s=0.1, radius_g=0.3)
+    for a, b in zip(leaves(ref), leaves(via)):
+        np.testing.assert_array_equal(a, b, err_msg="find_neighbours (vector goals) on 2 devices")
+    print("general search: 3-D states with angle, vector and no goals (2500 queries, levels > 3, "
+          ">= 8 chunks a pass) bitwise equal on 1 (no mesh) and 4 devices; find_neighbours on 2")
 
 
 def check_first_update(data):
@@ -156,6 +186,7 @@ def check_errors():
 if __name__ == "__main__":
     data = check_collect_bitwise()
     check_search_bitwise()
+    check_search_general_spaces_bitwise()
     state = check_first_update(data)
     check_checkpoint_moves_between_device_counts(state)
     check_default_mesh()

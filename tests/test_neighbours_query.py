@@ -346,8 +346,6 @@ def test_find_neighbours_dispatches_by_shape():
     b = find_neighbours_nd(key, s, g, qs, qg, k=8, radius_s=RS, radius_g=RG)
     for x, y in zip((a.idx, a.level, a.count), (b.idx, b.level, b.count)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-    with pytest.raises(ValueError, match="mesh"):
-        lq.find_neighbours(key, s, g, qs, qg, k=8, mesh=object())
 
 
 def test_a_3d_task_is_learned_through_the_public_api():

@@ -107,7 +107,7 @@ class LazyAgent(Agent):
             return Neighbourhoods(nb.idx, nb.level)
         g = None if data.g is None else data.g[:n]
         nb = find_neighbours(key, x[:n], g, x[:n], g, k=nc.k, radius_s=nc.radius_s,
-                             radius_g=nc.radius_g, growth=nc.growth)
+                             radius_g=nc.radius_g, growth=nc.growth, mesh=self.mesh)
         pad = data.size - n
         return Neighbourhoods(jnp.concatenate([nb.idx, jnp.zeros((pad, nc.k), jnp.int32)]),
                               jnp.concatenate([nb.level, jnp.zeros((pad,), jnp.int32)]))

@@ -8,7 +8,8 @@ One semantics (the float32 membership test of :mod:`lazyq_jax.neighbours.grid` a
 * :mod:`~lazyq_jax.neighbours.grid`: 2-D states with angle goals (the paper's case), a
   grid hash with fixed bounds and capacities so that seeds share compiled passes,
   the device mesh, and a jittable bounded query for the policy;
-* :mod:`~lazyq_jax.neighbours.nd`: any ``d_s <= 10`` with angle, vector or no goals;
+* :mod:`~lazyq_jax.neighbours.nd`: any ``d_s <= 10`` with angle, vector or no goals, the
+  device mesh (chunks dealt to the devices);
 * :mod:`~lazyq_jax.neighbours.query`: the policy's jittable per-step query in any space.
 
 :func:`find_neighbours` picks the engine from the shapes.
@@ -44,16 +45,13 @@ def find_neighbours(key, data_s, data_g, query_s, query_g, *, k=20, radius_s=0.0
     ``[N, d_g]`` (a vector, Euclidean) or ``None``.  Two-dimensional states with angle
     goals (the push task) use the grid (:func:`build_index`, :func:`search_all`);
     every other space goes to :func:`lazyq_jax.neighbours.nd.find_neighbours_nd` (same
-    semantics; ``mesh`` is not supported there).  Raises ``ValueError`` before any
+    semantics).  ``mesh``: the search runs on its devices, bitwise the one-device result.  Raises ``ValueError`` before any
     compilation for bad shapes, NaN/inf coordinates, ``k <= 0`` or ``k > N``,
     non-positive radii or ``growth <= 1``.
     """
     if not is_grid_space(data_s, data_g):
-        if mesh is not None:
-            raise ValueError("mesh= is supported for 2-D states with angle goals only; drop it for "
-                             f"states {np.shape(data_s)} and goals {None if data_g is None else np.shape(data_g)}")
         return find_neighbours_nd(key, data_s, data_g, query_s, query_g, k=k, radius_s=radius_s,
-                                  radius_g=radius_g, growth=growth)
+                                  radius_g=radius_g, growth=growth, mesh=mesh)
     index = build_index(data_s, data_g, k=k, radius_s=radius_s, radius_g=radius_g, growth=growth,
                         max_level=0)
     return search_all(index, key, query_s, query_g, mesh=mesh)

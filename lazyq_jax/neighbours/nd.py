@@ -95,6 +95,11 @@ a forced ``item_capacity``, or if the measurement were wrong) is *not* written a
 re-run with the reported need. Nothing is dropped silently. A chunk's inputs are
 gathered on the host, so compiled chunks do not depend on the number of queries.
 
+*Devices.* With a ``mesh`` a pass runs its chunks ``D`` at a time (``D`` devices), one
+chunk a device, as one ``shard_map`` program (the index replicated; the last group
+padded with empty chunks): a chunk's program is the one-device chunk's, so the search is
+bitwise the one-device search, and it compiles once for the mesh, not once a device.
+
 *Randomness.* Query ``q`` (its row in ``query_s``) draws its bits from a keyed hash of
 ``(bits(key), q)`` only, so results do not depend on chunking, padding, the pass in
 which it finishes or the other queries. Each Floyd draw ``U{0..j}`` is the high word of
@@ -115,9 +120,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax.sharding import Mesh, PartitionSpec as P
 
 from lazyq_jax.neighbours.common import (TWO_PI, Neighbours, _check_params, _mix32, _pick_level,
                                          _select_bit, radius_tables, wrap_angle)
+from lazyq_jax.parallel import AXIS, put, replicated, sharded, to_host
 
 __all__ = ["GridAxis", "NDIndex", "build_index_nd", "find_neighbours_nd", "membership_level_reference",
            "search_all_nd"]
@@ -781,6 +788,19 @@ def _chunk(index: NDIndex, key_words, rows, qcols, ip, fr, *, lo, hi, cap, steps
                          lo=lo, hi=hi, cap=cap, steps=steps, full=full)
 
 
+@partial(jax.jit, static_argnames=("lo", "hi", "cap", "steps", "full", "mesh"))
+def _chunks_on_mesh(index: NDIndex, key_words, rows, qcols, ip, fr, *, lo, hi, cap, steps, full, mesh):
+    """``mesh.size`` chunks (inputs stacked on a leading axis), one a device: each device runs
+    :func:`_chunk`'s program on its chunk; the results stacked likewise (read on the host)."""
+    def one(index, key_words, rows, qcols, ip, fr):
+        res = _search_chunk(index, _query_seeds(key_words, rows[0]), rows[0] >= 0, qcols[0], ip[0],
+                            fr[0], lo=lo, hi=hi, cap=cap, steps=steps, full=full)
+        return tuple(r[None] for r in res)
+
+    return jax.shard_map(one, mesh=mesh, in_specs=(P(), P(), *[P(AXIS)] * 4), out_specs=P(AXIS),
+                         check_vma=False)(index, key_words, rows, qcols, ip, fr)
+
+
 @partial(jax.jit, static_argnames=("level", "full"))
 def _count_items(index: NDIndex, ip, fr, real, *, level, full):
     """Exact items per query (int32 ``[B, C]``) of the level-``level`` stencil; padding rows 0.
@@ -828,7 +848,7 @@ def _levels_to_cover(index: NDIndex, qcols) -> int:
 
 def search_all_nd(index: NDIndex, key, query_s, query_g=None, *, n_queries: int | None = None,
                   item_capacity: int | None = None, chunk_items: int = _CHUNK_ITEMS,
-                  stats: dict | None = None) -> Neighbours:
+                  stats: dict | None = None, mesh: Mesh | None = None) -> Neighbours:
     """Exact neighbours of any number of queries (host-driven passes; not jittable).
 
     ``n_queries``: only the first rows are searched, the rest are padding (results 0).
@@ -836,6 +856,8 @@ def search_all_nd(index: NDIndex, key, query_s, query_g=None, *, n_queries: int 
     makes chunks overflow, which is detected and re-run with the measured need).
     ``chunk_items``: target items per chunk. ``stats``: if a dict, filled with per-pass
     information (``passes``: list of dicts; ``overflow_chunks``: chunks re-run).
+    ``mesh``: the chunks run on its devices (module docstring, *Devices*); bitwise the
+    same result.
     """
     qcols, d_s, kind, d_g = _points(query_s, query_g, "query")
     _check_match(index, d_s, kind, d_g)
@@ -864,10 +886,29 @@ def search_all_nd(index: NDIndex, key, query_s, query_g=None, *, n_queries: int 
     out_level = np.zeros(n_q, np.int32)
     out_count = np.zeros(n_q, np.int32)
     key_words = _key_words(key)
+    if mesh is not None:
+        index, key_words = put((index, key_words), replicated(mesh))
 
     def gather(rows):  # host-side inputs of a block of query rows (-1: padding)
         r = np.maximum(rows, 0)
         return rows, qcols[:, r], ip[:, r], fr[:, r]
+
+    def run_chunks(ids, **static):
+        """Chunks ``ids``, dispatched asynchronously: ``[(ci, results)]``."""
+        if mesh is None:
+            return [(ci, _chunk(index, key_words, *map(jnp.asarray, gather(sub2[ci])), **static))
+                    for ci in ids]
+        d, done = mesh.size, []
+        for g0 in range(0, len(ids), d):  # D chunks a program, the last group padded (rows -1)
+            group = ids[g0:g0 + d]
+            rows = np.full((d, sub2.shape[1]), -1, np.int64)
+            rows[:len(group)] = sub2[group]
+            inputs = [np.stack(x) for x in zip(*map(gather, rows))]
+            res = _chunks_on_mesh(index, key_words, *put(inputs, sharded(mesh)), mesh=mesh, **static)
+            if jax.process_count() > 1:  # other processes' chunks: gathered to every process
+                res = to_host(res)
+            done += [(ci, tuple(r[j] for r in res)) for j, ci in enumerate(group)]
+        return done
 
     pending, lo, hi = order, 0, 0
     while pending.size:
@@ -910,8 +951,7 @@ def search_all_nd(index: NDIndex, key, query_s, query_g=None, *, n_queries: int 
                 "measure_s": time.perf_counter() - t_pass}
         todo = list(range(n_chunks))
         while todo:
-            results = [(ci, _chunk(index, key_words, *map(jnp.asarray, gather(sub2[ci])), lo=lo, hi=hi,
-                                   cap=cap, steps=steps, full=full)) for ci in todo]  # asynchronous
+            results = run_chunks(todo, lo=lo, hi=hi, cap=cap, steps=steps, full=full)
             failed, worst_need, worst_items = [], 0.0, 0.0
             for ci, (idx, level, count, need, max_items, bad) in results:
                 need, max_items = float(need), float(max_items)
@@ -946,14 +986,15 @@ def search_all_nd(index: NDIndex, key, query_s, query_g=None, *, n_queries: int 
 
 
 def find_neighbours_nd(key, data_s, data_g, query_s, query_g, *, k=20, radius_s=0.06, radius_g=0.1,
-                       growth=2 ** (1 / 3), grid=None, item_capacity=None, stats=None) -> Neighbours:
+                       growth=2 ** (1 / 3), grid=None, item_capacity=None, stats=None,
+                       mesh: Mesh | None = None) -> Neighbours:
     """Neighbourhoods of paper §V-A-2 for general spaces (semantics: module docstring).
 
     ``data_s [N, d_s]``, ``query_s [Q, d_s]`` with ``1 <= d_s <= 10``; goals both ``None``,
     both angles ``[N]``/``[Q]`` or both vectors ``[N, d_g]``/``[Q, d_g]``. Returns
     :class:`lazyq_jax.neighbours.Neighbours` (``idx [Q, k]``, ``level [Q]``, ``count [Q]``).
     Raises ``ValueError`` before any compilation for mismatched shapes, NaN/inf,
-    ``k <= 0`` or ``k > N``, bad radii or growth. ``grid``/``item_capacity``/``stats``:
+    ``k <= 0`` or ``k > N``, bad radii or growth. ``grid``/``item_capacity``/``stats``/``mesh``:
     see :func:`build_index_nd` and :func:`search_all_nd`.
     """
     _check_params(k, radius_s, radius_g, growth)
@@ -968,4 +1009,5 @@ def find_neighbours_nd(key, data_s, data_g, query_s, query_g, *, k=20, radius_s=
         raise ValueError(f"need at least k={k} data points to draw k distinct neighbours, got {dc.shape[1]}")
     index = build_index_nd(data_s, data_g, k=k, radius_s=radius_s, radius_g=radius_g, growth=growth,
                            query_sample=(query_s, query_g), grid=grid)
-    return search_all_nd(index, key, query_s, query_g, item_capacity=item_capacity, stats=stats)
+    return search_all_nd(index, key, query_s, query_g, item_capacity=item_capacity, stats=stats,
+                         mesh=mesh)
