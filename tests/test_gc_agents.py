@@ -177,6 +177,16 @@ def test_gcivl_losses_match_numpy(problem):
     np.testing.assert_allclose(metrics["adv"], adv_pi.mean(), rtol=1e-5, atol=1e-6)
 
 
+def test_gcivl_value_fn_is_the_twin_mean():
+    problem = SETS[0]
+    agent = gcivl.make(gcivl.GCIVLConfig(**TINY), problem)
+    b = tiny_batch(problem)
+    state = agent.init(jax.random.PRNGKey(3), b)
+    _, x, _ = np_inputs(problem, b)
+    expected = np_twin(f64(state.model["params"]["value"]), x).mean(0)
+    np.testing.assert_allclose(agent.value_fn(state)(b.s, b.g), expected, rtol=1e-5, atol=1e-6)
+
+
 @pytest.mark.parametrize("problem", SETS, ids=lambda p: p.action_set)
 def test_gciql_losses_match_numpy(problem):
     agent, params, target, batch = models("gciql", problem, alpha=0.7, expectile=0.8)

@@ -209,6 +209,12 @@ class GCIVL(Baseline):
         return project(self.problem,
                        actor_mean(self.config, self.problem, model["params"]["actor"], s, g))
 
+    def value_fn(self, state):
+        """``V(s, g)`` of a trained (unstacked) state: the twin's mean, as the actor's
+        advantage uses it (the runner draws it as it draws lazy Q's)."""
+        value = state.model["params"]["value"]
+        return lambda s, g: jnp.mean(self.values(value, s, g), axis=0)
+
 
 def make(config: GCIVLConfig | None = None, problem: Problem | None = None,
          progress=None) -> GCIVL:
