@@ -886,8 +886,8 @@ def search_all_nd(index: NDIndex, key, query_s, query_g=None, *, n_queries: int 
     out_level = np.zeros(n_q, np.int32)
     out_count = np.zeros(n_q, np.int32)
     key_words = _key_words(key)
-    if mesh is not None:
-        index, key_words = put((index, key_words), replicated(mesh))
+    # the chunks' copies on the mesh (the measuring pass stays on the default device)
+    on_mesh = None if mesh is None else put((index, key_words), replicated(mesh))
 
     def gather(rows):  # host-side inputs of a block of query rows (-1: padding)
         r = np.maximum(rows, 0)
@@ -898,15 +898,19 @@ def search_all_nd(index: NDIndex, key, query_s, query_g=None, *, n_queries: int 
         if mesh is None:
             return [(ci, _chunk(index, key_words, *map(jnp.asarray, gather(sub2[ci])), **static))
                     for ci in ids]
-        d, done = mesh.size, []
+        d, groups = mesh.size, []
         for g0 in range(0, len(ids), d):  # D chunks a program, the last group padded (rows -1)
             group = ids[g0:g0 + d]
             rows = np.full((d, sub2.shape[1]), -1, np.int64)
             rows[:len(group)] = sub2[group]
             inputs = [np.stack(x) for x in zip(*map(gather, rows))]
-            res = _chunks_on_mesh(index, key_words, *put(inputs, sharded(mesh)), mesh=mesh, **static)
-            if jax.process_count() > 1:  # other processes' chunks: gathered to every process
-                res = to_host(res)
+            groups.append((group, _chunks_on_mesh(*on_mesh, *put(inputs, sharded(mesh)), mesh=mesh,
+                                                  **static)))
+        # read on the host: indexing the sharded results on the devices would be a program
+        # with collectives
+        done = []
+        for group, res in groups:
+            res = to_host(res)
             done += [(ci, tuple(r[j] for r in res)) for j, ci in enumerate(group)]
         return done
 
