@@ -34,8 +34,8 @@ def per_seed_rows(run_dirs: list[Path], method: str) -> dict[int, dict]:
             if row["seed"] in rows:
                 raise SystemExit(f"{method}: seed {row['seed']} is in two of the run directories "
                                  f"(again in {run_dir}); name each seed's run once")
-            per_seed_train = timings.get("train_s", float("nan")) / len(results["seeds"])
-            rows[row["seed"]] = {**row, "train_s": per_seed_train + timings.get("prepare_s", 0.0)}
+            spent = timings.get("train_s", float("nan")) + timings.get("prepare_s", 0.0)
+            rows[row["seed"]] = {**row, "train_s": spent / len(results["seeds"])}
     return rows
 
 
@@ -46,6 +46,14 @@ def main() -> None:
                    help="method specs as in results.json; the first is the reference of the "
                         "paired differences")
     args = p.parse_args()
+    # the seeds' data and evaluation must come from the same settings (a seed's dataset is a
+    # function of its seed and the collect settings)
+    settings = {str(d): {k: json.loads((d / "run.json").read_text())["config"][k]
+                         for k in ("task", "collect", "eval")} for d in args.run_dirs}
+    first = next(iter(settings.values()))
+    for d, cfg in settings.items():
+        if cfg != first:
+            raise SystemExit(f"{d} has other task/collect/eval settings than {args.run_dirs[0]}")
     table = {m: per_seed_rows(args.run_dirs, m) for m in args.methods}
     for m, rows in table.items():
         if not rows:

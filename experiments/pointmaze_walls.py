@@ -4,19 +4,22 @@ lazy network fitted by plain regression to the walls-aware optimum, against two 
 * ``V*``: the optimal value with the walls.  Free positions of the point (a ball of radius
   0.7) on a grid of 0.25; an 8-neighbour graph whose every edge is one grid unit (a box
   action moves up to 0.2 along each axis at once, so the step count is a Chebyshev
-  length); all-pairs BFS (``scipy.sparse.csgraph``).  Steps to success
-  ``n = ceil(max(D - 1, 0) / 0.2)`` for the geodesic length ``D`` (success: within 1.0),
-  ``V* = -(1 - gamma^n) / (1 - gamma)`` (reward -1 a step until success).  An
-  approximation (contacts, the Euclidean success ball), good to a few steps.
+  length); all-pairs BFS (``scipy.sparse.csgraph``).  Steps to the goal
+  ``n = ceil(D / 0.2)`` for the geodesic length ``D``, ``V* = -(1 - gamma^n) / (1 - gamma)``:
+  the training rows' reward (OGBench's relabelling: -1 a step until the goal *is* the
+  state, ``r = success - 1`` with success only where the goal is the current state).
+  An approximation (contacts, the grid), good to a few steps.
 * ``V_line``: the same with ``D`` the straight Chebyshev distance (the walls ignored).
 
 For every value model: Spearman's rank correlation with ``V*`` and with ``V_line`` on
-(state, goal) pairs drawn from the training rows of seed 0's data, over all pairs and
-over the *wall pairs* (the detour round the walls adds >= 20 steps).  A value that sees
-the walls ranks the wall pairs like ``V*``; one that ignores them like ``V_line``.
+(state, goal) pairs drawn from the training rows of the first run's first seed (pairs with
+the goal at the state itself, 20 % of the rows, left out: they tie at 0), over all pairs
+and over the *wall pairs* (the detour round the walls adds >= 20 steps), with 95 %
+bootstrap intervals over the pairs.  A value that sees the walls ranks the wall pairs like
+``V*``; one that ignores them like ``V_line``.
 
 The fits train the value network on ``(s, g) -> V*`` rows with Adam (batch 4096): the
-lazy default (9 x 32, batch norm) and a 4 x 128 one, ``--fit-steps`` each.  If they see
+lazy default (depth 9: 8 hidden layers of 32, batch norm) and 3 hidden layers of 128, ``--fit-steps`` each.  If they see
 the walls where lazy Q's Bellman training does not, the network is not what bounds it.
 
     .venv/bin/python experiments/pointmaze_walls.py --runs runs/pm_goaloff:lazy \\
@@ -43,7 +46,7 @@ from lazyq_jax.data import load_dataset
 from lazyq_jax.networks import ValueNetwork
 from lazyq_jax.plots import plt
 from lazyq_jax.run import load_run
-from lazyq_jax.tasks.pointmaze.maze import GOAL_TOL, MAZE_UNIT, STEP_SCALE, get_maze
+from lazyq_jax.tasks.pointmaze.maze import MAZE_UNIT, STEP_SCALE, get_maze
 from lazyq_jax.tasks.pointmaze.plots import draw_maze
 
 H = 0.25  # grid spacing
@@ -93,7 +96,8 @@ class Geodesic:
 
 
 def value_of(length: np.ndarray, gamma: float) -> np.ndarray:
-    n = np.ceil(np.maximum(length - GOAL_TOL, 0.0) / STEP_SCALE)
+    """``-(1 - gamma^n) / (1 - gamma)`` for ``n = ceil(length / 0.2)`` steps to the goal."""
+    n = np.ceil(np.round(length / STEP_SCALE, 6))
     return -(1.0 - gamma ** n) / (1.0 - gamma)
 
 
@@ -125,10 +129,22 @@ def fit(x_s, x_g, y, width, depth, steps, seed=0, batch=4096, lr=1e-3):
     return apply, float(losses[-100:].mean())
 
 
-def scores(v, v_star, v_line, wall) -> dict:
-    rho = lambda a, b: float(spearmanr(a, b).statistic)
+def scores(v, v_star, v_line, wall, n_boot: int = 200) -> dict:
+    """Spearman's rho of ``v`` with ``V*`` and ``V_line`` (all pairs, wall pairs), each with a
+    95 % bootstrap interval over the pairs."""
+    rng = np.random.default_rng(1)
+
+    def rho(a, b):
+        boot = [spearmanr(a[i], b[i]).statistic
+                for i in rng.integers(len(a), size=(n_boot, len(a)))]
+        return [float(spearmanr(a, b).statistic), *map(float, np.percentile(boot, [2.5, 97.5]))]
+
     return {"rho_star": rho(v, v_star), "rho_line": rho(v, v_line),
             "wall_rho_star": rho(v[wall], v_star[wall]), "wall_rho_line": rho(v[wall], v_line[wall])}
+
+
+def fmt(r) -> str:
+    return f"{r[0]:.3f} [{r[1]:.3f}, {r[2]:.3f}]"
 
 
 def main() -> None:
@@ -143,30 +159,37 @@ def main() -> None:
     args = p.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    maze = get_maze("medium")
+    runs = [r.split(":", 1) for r in args.runs]
+    mazes = {json.loads((Path(d) / "run.json").read_text())["config"]["collect"]["maze"] for d, _ in runs}
+    if len(mazes) > 1:
+        raise SystemExit(f"the runs are of different mazes: {sorted(mazes)}")
+    maze = get_maze(mazes.pop() if mazes else "medium")
     t = time.perf_counter()
     geo = Geodesic(maze)
     print(f"geodesics: {len(geo.nodes)} free nodes ({time.perf_counter() - t:.1f} s)", flush=True)
 
-    runs = [r.split(":", 1) for r in args.runs]
     if args.data:
         data_path = Path(args.data)
     elif runs:
-        data_path = next(Path(runs[0][0]).glob("data/*/dataset.npz"))
+        seed = json.loads((Path(runs[0][0]) / "run.json").read_text())["seeds"][0]
+        data_path = Path(runs[0][0]) / "data" / str(seed) / "dataset.npz"
     else:
         raise SystemExit("give --data (a pointmaze dataset.npz) or --runs")
     data, _ = load_dataset(data_path)
     s, g = np.asarray(data.s), np.asarray(data.g)
     rng = np.random.default_rng(0)
-    test = rng.choice(len(s), args.pairs, replace=False)
+    apart = np.flatnonzero(np.any(s != g, axis=1))  # the goal at the state itself: left out
+    test = rng.choice(apart, args.pairs, replace=False)
     v_star = value_of(geo.length(s[test], g[test]), args.gamma)
     v_line = value_of(np.abs(s[test] - g[test]).max(1), args.gamma)
     steps_star = geo.length(s[test], g[test]) / STEP_SCALE
     steps_line = np.abs(s[test] - g[test]).max(1) / STEP_SCALE
     wall = steps_star - steps_line >= WALL_STEPS
-    print(f"{args.pairs} pairs from {data_path}: {wall.mean():.1%} are wall pairs "
-          f"(detour >= {WALL_STEPS} steps); references: V* vs V_line "
-          f"{scores(v_star, v_star, v_line, wall)}", flush=True)
+    ref = scores(v_star, v_star, v_line, wall)
+    print(f"{args.pairs} pairs from {data_path} ({len(apart) / len(s):.1%} of the rows have the goal "
+          f"apart from the state): {wall.mean():.1%} are wall pairs (detour >= {WALL_STEPS} steps); "
+          f"V* against V_line: all {fmt(ref['rho_line'])}, wall pairs {fmt(ref['wall_rho_line'])}",
+          flush=True)
 
     values = {}
     for run_dir, method in runs:
@@ -174,13 +197,12 @@ def main() -> None:
         values[f"{method.split(':steps=')[0]}, {Path(run_dir).name} seed {loaded.seeds[0]}"] = \
             loaded.agent.value_fn(loaded.state())
     if args.fit_steps:
-        train = rng.choice(len(s), min(len(s), 1_000_000), replace=False)
-        train = np.setdiff1d(train, test)
+        train = np.setdiff1d(np.arange(len(s)), test)
         y = value_of(geo.length(s[train], g[train]), args.gamma).astype(np.float32)
         for width, depth in ((32, 9), (128, 4)):
             t = time.perf_counter()
             fn, loss = fit(s[train], g[train], y, width, depth, args.fit_steps)
-            name = f"fit to V*: {depth} x {width} BN"
+            name = f"fit to V*: {depth - 1} hidden x {width}, BN"
             values[name] = fn
             print(f"{name}, {args.fit_steps} steps: final mse {loss:.3f} "
                   f"({time.perf_counter() - t:.0f} s)", flush=True)
@@ -191,8 +213,8 @@ def main() -> None:
     for name, fn in values.items():
         v = np.asarray(fn(jnp.asarray(s[test]), jnp.asarray(g[test])), np.float64)
         table[name] = sc = scores(v, v_star, v_line, wall)
-        print(f"| {name} | {sc['rho_star']:.3f} | {sc['rho_line']:.3f} | {sc['wall_rho_star']:.3f} | "
-              f"{sc['wall_rho_line']:.3f} |")
+        print(f"| {name} | {fmt(sc['rho_star'])} | {fmt(sc['rho_line'])} | {fmt(sc['wall_rho_star'])} | "
+              f"{fmt(sc['wall_rho_line'])} |", flush=True)
     (out / "walls.json").write_text(json.dumps({"pairs": args.pairs, "wall_fraction": float(wall.mean()),
                                                 "scores": table}, indent=1))
 

@@ -83,6 +83,13 @@ def check_search_general_spaces_bitwise():
         out = search_all_nd(index, key, s, g, chunk_items=512, mesh=MESHES[4])
         for a, b in zip(leaves(ref), leaves(out)):
             np.testing.assert_array_equal(a, b, err_msg=f"general search ({kind}) on 4 devices")
+    # chunks that overflow a forced capacity on the mesh: re-run in new groups, still bitwise
+    stats = {}
+    out = search_all_nd(index, key, s, g, chunk_items=512, item_capacity=8, mesh=MESHES[4],
+                        stats=stats)
+    assert stats["overflow_chunks"] > 0, stats
+    for a, b in zip(leaves(ref), leaves(out)):
+        np.testing.assert_array_equal(a, b, err_msg="overflowing chunks on 4 devices")
     # find_neighbours takes the mesh for general spaces too (its own chunking, 2 devices)
     g = goals["vector"]
     via = find_neighbours(key, s, g, s, g, k=10, radius_s=0.1, radius_g=0.3, mesh=MESHES[2])
@@ -90,7 +97,8 @@ def check_search_general_spaces_bitwise():
     for a, b in zip(leaves(ref), leaves(via)):
         np.testing.assert_array_equal(a, b, err_msg="find_neighbours (vector goals) on 2 devices")
     print("general search: 3-D states with angle, vector and no goals (2500 queries, levels > 3, "
-          ">= 8 chunks a pass) bitwise equal on 1 (no mesh) and 4 devices; find_neighbours on 2")
+          ">= 8 chunks a pass; overflowing chunks re-run) bitwise equal on 1 (no mesh) and 4 "
+          "devices; find_neighbours on 2")
 
 
 def check_first_update(data):

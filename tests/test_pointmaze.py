@@ -19,7 +19,8 @@ from lazyq_jax.config import ConfigError, override
 from lazyq_jax.data import DatasetError, load_dataset, save_dataset
 from lazyq_jax.keys import purpose_key
 from lazyq_jax.run import load_policy
-from lazyq_jax.run.runner import eval_stamp
+from lazyq_jax.run.rundir import write_json
+from lazyq_jax.run.runner import eval_stamp, stored_evaluation
 from lazyq_jax.run.sources import dataset_meta, seed_dataset
 from lazyq_jax.tasks.base import CORRECT, run_protocol, seed_acts
 from lazyq_jax.tasks.pointmaze import (get_maze, load_npz, navigate, oracle_action, relabel,
@@ -322,10 +323,14 @@ def test_a_cached_dataset_without_trajectories_is_collected_anew(tmp_path):
     assert meta == dataset_meta(cfg, 0, 2) and meta["data_version"] == 2
 
 
-def test_a_stored_evaluation_is_recognised():
-    """``eval.json`` is reused when its stamp equals the run's: pointmaze's ``eval.tasks`` is a
-    tuple, which JSON gives back as a list, so the stamp must compare as stored."""
+def test_a_stored_evaluation_is_reused(tmp_path):
+    """An ``eval.json`` written by the runner is found again for the same settings (pointmaze's
+    ``eval.tasks`` is a tuple, which JSON gives back as a list), and not for others."""
     config = tasks.preset("pointmaze", "paper")
     stamp = eval_stamp(config, 300, (0,))
-    assert json.loads(json.dumps(stamp)) == stamp
-    assert stamp != eval_stamp(override(config, ["eval.tasks=[1,2]"]), 300, (0,))
+    path = tmp_path / "eval.json"
+    write_json(path, {**stamp, "seconds": 1.0, "per_seed": [{"seed": 0, "success_rate": 0.5}]})
+    assert stored_evaluation(path, eval_stamp(config, 300, [0])) == [{"seed": 0, "success_rate": 0.5}]
+    assert stored_evaluation(path, eval_stamp(override(config, ["eval.tasks=[1,2]"]), 300, (0,))) is None
+    assert stored_evaluation(path, eval_stamp(config, 200, (0,))) is None
+    assert stored_evaluation(tmp_path / "none.json", stamp) is None

@@ -45,9 +45,10 @@ def find_neighbours(key, data_s, data_g, query_s, query_g, *, k=20, radius_s=0.0
     ``[N, d_g]`` (a vector, Euclidean) or ``None``.  Two-dimensional states with angle
     goals (the push task) use the grid (:func:`build_index`, :func:`search_all`);
     every other space goes to :func:`lazyq_jax.neighbours.nd.find_neighbours_nd` (same
-    semantics).  ``mesh``: the search runs on its devices, bitwise the one-device result.  Raises ``ValueError`` before any
-    compilation for bad shapes, NaN/inf coordinates, ``k <= 0`` or ``k > N``,
-    non-positive radii or ``growth <= 1``.
+    semantics).  ``mesh``: the search runs on its devices (the same result as on one device,
+    checked bitwise on CPU devices).  Raises ``ValueError`` before any compilation for bad
+    shapes, NaN/inf coordinates, ``k <= 0`` or ``k > N``, non-positive radii or
+    ``growth <= 1``.
     """
     if not is_grid_space(data_s, data_g):
         return find_neighbours_nd(key, data_s, data_g, query_s, query_g, k=k, radius_s=radius_s,

@@ -97,8 +97,12 @@ gathered on the host, so compiled chunks do not depend on the number of queries.
 
 *Devices.* With a ``mesh`` a pass runs its chunks ``D`` at a time (``D`` devices), one
 chunk a device, as one ``shard_map`` program (the index replicated; the last group
-padded with empty chunks): a chunk's program is the one-device chunk's, so the search is
-bitwise the one-device search, and it compiles once for the mesh, not once a device.
+padded with empty chunks), read back on the host: no collective, one compilation for
+the mesh.  Each device computes its chunk by the one-device chunk's operations, so the
+result equals the one-device search; checked bitwise on CPU devices
+(tests/multidevice_check.py), not by construction (it is another XLA module).  With
+several processes each one searches on its own devices of the mesh (no cross-host
+traffic; every process gets the whole result).
 
 *Randomness.* Query ``q`` (its row in ``query_s``) draws its bits from a keyed hash of
 ``(bits(key), q)`` only, so results do not depend on chunking, padding, the pass in
@@ -833,6 +837,19 @@ def _bucket(n: int) -> int:
     return -(-n // unit) * unit
 
 
+def _local_mesh(mesh: Mesh | None) -> Mesh | None:
+    """The devices the chunks run on: ``None`` for no mesh or one device (the one-device
+    path), else the mesh's devices of this process (with several processes each searches
+    on its own devices: every process needs the whole result on its host, and the chunks
+    cross no process boundary)."""
+    if mesh is None or mesh.size == 1:
+        return None
+    if jax.process_count() == 1:
+        return mesh
+    local = [d for d in mesh.devices.flat if d.process_index == jax.process_index()]
+    return None if len(local) <= 1 else Mesh(np.array(local), (AXIS,))
+
+
 def _levels_to_cover(index: NDIndex, qcols) -> int:
     """A level whose radii cover every (data, query) pair (so ``|B| = N >= k`` there)."""
     lo = np.minimum(np.asarray(index.col_lo), qcols.min(axis=1))
@@ -856,8 +873,8 @@ def search_all_nd(index: NDIndex, key, query_s, query_g=None, *, n_queries: int 
     makes chunks overflow, which is detected and re-run with the measured need).
     ``chunk_items``: target items per chunk. ``stats``: if a dict, filled with per-pass
     information (``passes``: list of dicts; ``overflow_chunks``: chunks re-run).
-    ``mesh``: the chunks run on its devices (module docstring, *Devices*); bitwise the
-    same result.
+    ``mesh``: the chunks run on its devices (module docstring, *Devices*); a one-device
+    mesh is the one-device path.
     """
     qcols, d_s, kind, d_g = _points(query_s, query_g, "query")
     _check_match(index, d_s, kind, d_g)
@@ -886,6 +903,7 @@ def search_all_nd(index: NDIndex, key, query_s, query_g=None, *, n_queries: int 
     out_level = np.zeros(n_q, np.int32)
     out_count = np.zeros(n_q, np.int32)
     key_words = _key_words(key)
+    mesh = _local_mesh(mesh)
     # the chunks' copies on the mesh (the measuring pass stays on the default device)
     on_mesh = None if mesh is None else put((index, key_words), replicated(mesh))
 

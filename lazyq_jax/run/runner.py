@@ -283,16 +283,24 @@ def eval_stamp(config: Config, block: int, seeds: Sequence[int]) -> dict:
     return as_json({"eval": to_dict(config.eval), "block": int(block), "seeds": [int(s) for s in seeds]})
 
 
+def stored_evaluation(path: Path, stamp: dict) -> list[dict] | None:
+    """The per-seed results in ``eval.json`` at ``path`` if it was made with ``stamp``
+    (:func:`eval_stamp`), else ``None``."""
+    if not path.exists():
+        return None
+    stored = json.loads(path.read_text())
+    return stored["per_seed"] if {k: stored.get(k) for k in stamp} == stamp else None
+
+
 def evaluate_method(ctx: Context, agent: Agent, spec: MethodSpec, method_dir: Path, states,
                     sd: SeedData, *, block: int, force: bool = False, figures: bool = True) -> list[dict]:
     """The task's evaluation of every seed (``eval.json``), reused when it was made with the
     same evaluation settings from the same checkpoint; figures and an animation of seed 0."""
     path = method_dir / "eval.json"
     stamp = eval_stamp(ctx.config, block, ctx.seeds)
-    if not force and path.exists():
-        stored = json.loads(path.read_text())
-        if {k: stored.get(k) for k in stamp} == stamp:
-            return stored["per_seed"]
+    stored = None if force else stored_evaluation(path, stamp)
+    if stored is not None:
+        return stored
     t = time.perf_counter()
     policies = agent.policies(states, sd.stacked, sd.n_valid)
     ev = ctx.task.evaluate(agent.act, policies, ctx.config, ctx.seeds)
