@@ -45,7 +45,8 @@ def rollouts_figure(maze: Maze, rollouts, result: dict, path: Path, per_task: in
             ax.plot(*xy[0], "k.", ms=4)
             ax.add_patch(plt.Circle(goal[b], GOAL_TOL, fill=False, color="tab:blue", lw=0.8))
         ax.set_title(f"task {row['task']}: {row['success_rate']:.0%}", fontsize=9)
-    fig.suptitle(f"{maze.name} maze, seed 0: success {result['tasks']['success_rate']:.1%} "
+    fig.suptitle(f"{maze.name} maze, seed {result['seed']}: success "
+                 f"{result['tasks']['success_rate']:.1%} "
                  "(mean over tasks)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
