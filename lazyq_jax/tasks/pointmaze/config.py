@@ -81,9 +81,9 @@ def check(config: Config) -> None:
            f"{config.train.gamma}; set both")
 
 
-# Lazy Q on the maze.  Value information must travel a few hundred steps (task 1: ~250 env
-# steps at 0.2 per step), one step per cycle: many short cycles (one epoch each) rather than
-# the paper's 10 x 10.  Neighbourhoods in (state, goal) space: 0.5 in x, y (2.5 steps) and
+# Lazy Q on the maze.  Value information must travel over a hundred steps (tasks 1 and 4: ~130
+# steps of at most 0.2 per axis), one step per cycle: many short cycles (one epoch each)
+# rather than the paper's 10 x 10.  Neighbourhoods in (state, goal) space: 0.5 in x, y (2.5 steps) and
 # 1.0 in the goal (OGBench's success radius); 93 % of the transitions have k = 20 members at
 # level 0 on the default data.  Local models with state and goal offsets (the value changes by
 # ~5 per unit across the state and the goal ball, an action by one step): seed 0, 58.0 % of
