@@ -24,6 +24,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
+from lazyq_jax.agents.common import take
 from lazyq_jax.config import ConfigError
 from lazyq_jax.types import Transitions
 
@@ -88,7 +89,7 @@ def minibatches(source: str, data: Transitions, idx: jax.Array, key: jax.Array,
     (:func:`uses_trajectories`), else the rows as they are, twice."""
     if uses_trajectories(source, data, who):
         return goal_batches(data, idx, key, n_valid, discount)
-    rows = jax.tree.map(lambda x: x[idx], data)
+    rows = take(data, idx)
     return rows, rows
 
 
@@ -98,7 +99,7 @@ def goal_batches(data: Transitions, idx: jax.Array, key: jax.Array, n_valid: jax
     """``(value batch, actor batch)`` of rows ``idx``: their transitions with fresh value goals
     (and the reward and ``done`` of those goals) and with fresh actor goals."""
     k_value, k_actor = jax.random.split(key)
-    rows = jax.tree.map(lambda x: x[idx], data)
+    rows = take(data, idx)
     g_value = sample_goal_rows(k_value, idx, data.traj_last, n_valid, value, discount)
     g_actor = sample_goal_rows(k_actor, idx, data.traj_last, n_valid, actor, discount)
     success = g_value == idx

@@ -796,9 +796,9 @@ def _chunk(index: NDIndex, key_words, rows, qcols, ip, fr, *, lo, hi, cap, steps
 def _chunks_on_mesh(index: NDIndex, key_words, rows, qcols, ip, fr, *, lo, hi, cap, steps, full, mesh):
     """``mesh.size`` chunks (inputs stacked on a leading axis), one a device: each device runs
     :func:`_chunk`'s program on its chunk; the results stacked likewise (read on the host)."""
-    def one(index, key_words, rows, qcols, ip, fr):
-        res = _search_chunk(index, _query_seeds(key_words, rows[0]), rows[0] >= 0, qcols[0], ip[0],
-                            fr[0], lo=lo, hi=hi, cap=cap, steps=steps, full=full)
+    def one(index, key_words, rows, qcols, ip, fr):  # one device: its chunk, through _chunk
+        res = _chunk(index, key_words, rows[0], qcols[0], ip[0], fr[0], lo=lo, hi=hi, cap=cap,
+                     steps=steps, full=full)
         return tuple(r[None] for r in res)
 
     return jax.shard_map(one, mesh=mesh, in_specs=(P(), P(), *[P(AXIS)] * 4), out_specs=P(AXIS),
