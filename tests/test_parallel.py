@@ -13,10 +13,12 @@ import pytest
 
 from lazyq_jax.config import ConfigError, ParallelConfig, override
 from lazyq_jax.data import load_dataset
+from lazyq_jax.neighbours import find_neighbours
 from lazyq_jax.parallel import check_divisible, force_host_devices, make_mesh
 from lazyq_jax.run import run
 
 from conftest import PUSH
+from two_process_search import search_inputs
 
 
 def test_multidevice_results_match_one_device():
@@ -113,3 +115,31 @@ def test_two_processes_match_one_process(tmp_path):
     for name in ("loss_first_epoch", "target_mean", "target_std", "beta_norm_mean"):
         np.testing.assert_allclose(multi[0][name], one[0][name], rtol=max(rtol, 1e-5), err_msg=name)
     np.testing.assert_allclose(multi[0]["clip_fraction"], one[0]["clip_fraction"], atol=2 / n + 1e-5)
+
+
+def test_two_processes_search_general_spaces_like_one(tmp_path):
+    """The general neighbour search (3-D states, vector goals, levels > 3) over a mesh of two
+    processes with 2 CPU devices each (each process searches on its own devices): both
+    processes get bitwise the neighbourhoods of one process without a mesh."""
+    script = Path(__file__).parent / "two_process_search.py"
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2",
+           "LAZYQ_COMPILE_CACHE": "off", "JAX_NUM_PROCESSES": "2",
+           "JAX_COORDINATOR_ADDRESS": f"127.0.0.1:{_free_port()}"}
+    out = tmp_path / "search"
+    procs = [subprocess.Popen([sys.executable, str(script), str(out)], stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True, env={**env, "JAX_PROCESS_ID": str(i)})
+             for i in range(2)]
+    try:
+        logs = [p.communicate(timeout=300)[0] for p in procs]
+    finally:
+        for p in procs:
+            p.kill()
+    for i, (p, log) in enumerate(zip(procs, logs)):
+        assert p.returncode == 0, f"process {i}:\n{log}"
+    key, s, g, kw = search_inputs()
+    ref = find_neighbours(key, s, g, s, g, **kw)
+    assert int(np.asarray(ref.level).max()) > 3
+    for i in range(2):
+        got = np.load(f"{out}.{i}.npz")
+        np.testing.assert_array_equal(got["idx"], np.asarray(ref.idx), err_msg=f"process {i}")
+        np.testing.assert_array_equal(got["level"], np.asarray(ref.level), err_msg=f"process {i}")

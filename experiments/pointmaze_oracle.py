@@ -1,0 +1,244 @@
+"""Is lazy Q's bound on the maze its value or its operator?  Lazy Q's policy and Bellman
+operator fed with the walls-aware optimal value ``V*`` instead of the trained one.
+
+Two measurements on one trained lazy run (its first seed, its data, its neighbourhoods):
+
+* **Oracle policy.**  Eq. (9)'s greedy action from the local fit over the dataset, with the
+  neighbours' bootstrapped values ``y_j = r_j + gamma (1 - done_j) V(s'_j, g_j)`` taken from
+  ``V*``, from ``V_line`` (the walls ignored) and from the trained ``V``; each evaluated with
+  OGBench's protocol (the run's ``eval`` settings).  If ``V*`` succeeds where the trained
+  ``V`` does not, the local policy is not what bounds lazy Q: its value is.
+* **Fixed point.**  The targets of Eq. (8) (the fit over each row's neighbourhood, max over
+  the box, clipped) computed from ``V*`` and from the trained ``V``, against ``V*`` at the
+  rows, over all rows with the goal apart from the state and over the wall pairs
+  (pointmaze_walls.py): the mean error of ``T V*`` is the operator's own bias (Eq. 7's max,
+  the linear model across walls-shaped values), that of ``T V`` against ``V`` is how far
+  training is from its fixed point.
+* **Noise probe** (``--probe-k``): the bias of that target when ``V*`` carries noise, for
+  other ``k`` and a double estimator, and how far the target extrapolates: ``sum_j |w_j|``
+  of the target as a linear function of the neighbours' values.
+
+``V*`` and ``V_line`` are pointmaze_walls.py's (a BFS over a 0.25 grid of free positions;
+accurate to a few steps).
+
+    .venv/bin/python experiments/pointmaze_oracle.py runs/pm_goaloff \
+        --values runs/pm_ogb:gcivl:width=128:steps=114139          # policy and fixed point
+    .venv/bin/python experiments/pointmaze_oracle.py runs/pm_goaloff --skip-fixed-point \
+        --skip-policy --probe-k 20 40 --out runs/pm_goaloff/probe.json   # the noise probe
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+from scipy.stats import spearmanr
+
+from lazyq_jax.keys import purpose_key
+from lazyq_jax.local_model import fit_local_linear, greedy_action, neighbour_offsets
+from lazyq_jax.neighbours import find_neighbours
+from lazyq_jax.run import load_run
+from lazyq_jax.targets import bootstrap_values, lazy_target
+from lazyq_jax.tasks.pointmaze.maze import STEP_SCALE, get_maze
+
+sys.path.insert(0, str(Path(__file__).parent))
+from pointmaze_walls import WALL_STEPS, Geodesic, value_of
+
+
+def fixed_point(args, agent, data, seed, n, s, g, geo, gamma, config, loaded, tables, results):
+    """T V against V* (and the trained V) at sampled rows; see the module docstring."""
+    t = time.perf_counter()
+    nb = agent.prepare(seed, data, n, 0)
+    idx = np.asarray(nb.idx[:n])
+    print(f"neighbourhoods: {time.perf_counter() - t:.0f} s", flush=True)
+    rng = np.random.default_rng(0)
+    apart = np.flatnonzero(np.any(s != g, axis=1))
+    rows = np.sort(rng.choice(apart, min(args.pairs, apart.size), replace=False))
+    d_star = geo.length(s[rows], g[rows])
+    v_star = value_of(d_star, gamma)
+    wall = d_star / STEP_SCALE - np.abs(s[rows] - g[rows]).max(1) / STEP_SCALE >= WALL_STEPS
+    model = config.neighbours.local_model
+    ii = jnp.asarray(idx[rows])
+    offsets = None
+    if model != "action":
+        offsets = neighbour_offsets(jnp.asarray(s)[ii], jnp.asarray(s[rows]),
+                                    jnp.asarray(g)[ii] if model == "action+state+goal" else None,
+                                    jnp.asarray(g[rows]) if model == "action+state+goal" else None)
+    a_nb = jnp.asarray(np.asarray(data.a[:n]))[ii]
+    v_rows_net = np.asarray(agent.value_fn(loaded.state())(jnp.asarray(s[rows]), jnp.asarray(g[rows])), np.float64)
+    gap = v_rows_net - v_star
+    results["fixed_point"]["trained V - V*"] = {
+        part: {"mean": float(gap[m].mean()), "mean_abs": float(np.abs(gap[m]).mean())}
+        for part, m in (("all", np.ones_like(wall)), ("wall pairs", wall))}
+    print(f"trained V - V*: {json.dumps(results['fixed_point']['trained V - V*'])}", flush=True)
+    for name in ("V* (walls)", "trained V"):
+        y = tables[name]
+        y_nb = jnp.asarray(y)[ii]
+        alpha, beta = fit_local_linear(a_nb, y_nb, offsets=offsets)
+        target, clipped = lazy_target(alpha, beta, y_nb, agent.problem.action_length, True,
+                                      agent.problem.action_set)
+        unclipped, _ = lazy_target(alpha, beta, y_nb, agent.problem.action_length, False,
+                                   agent.problem.action_set)
+        target, unclipped = np.asarray(target, np.float64), np.asarray(unclipped, np.float64)
+        ref = v_star if name.startswith("V*") else v_rows_net
+        entry = {}
+        for part, m in (("all", np.ones_like(wall)), ("wall pairs", wall)):
+            err = target[m] - ref[m]
+            entry[part] = {"rows": int(m.sum()), "mean_error": float(err.mean()),
+                           "mean_abs_error": float(np.abs(err).mean()),
+                           "mean_error_unclipped": float((unclipped[m] - ref[m]).mean()),
+                           "mean_alpha_error": float((np.asarray(alpha, np.float64)[m] - ref[m]).mean()),
+                           "clipped": float(np.asarray(clipped)[m].mean()),
+                           "spearman_with_V*": float(spearmanr(target[m], v_star[m]).statistic)}
+        results["fixed_point"][f"T({name}) against {'V*' if name.startswith('V*') else 'V'}"] = entry
+        print(f"T({name}): {json.dumps(entry)}", flush=True)
+
+
+def target_weights(a_nb, offsets, c):
+    """``sum_j |w_j|`` of Eq. (7)'s target ``alpha + c sign(beta) . beta = sum_j w_j y_j`` as a
+    linear function of the neighbours' values, for each box corner (the sign pattern held
+    fixed), averaged over the corners: ``[rows]``.  A DQN target has ``sum |w| = 1``; above
+    ``1 / gamma`` the backup is no contraction in the max norm."""
+    x = np.concatenate([np.ones(a_nb.shape[:-1] + (1,)), a_nb, offsets], -1)
+    hat = np.linalg.solve(np.einsum("nki,nkj->nij", x, x) + 1e-9 * np.eye(x.shape[-1]),
+                          np.swapaxes(x, 1, 2))  # [rows, p, k]: coefficients = hat @ y
+    n_a, total = a_nb.shape[-1], 0.0
+    corners = np.stack(np.meshgrid(*[[-1.0, 1.0]] * n_a), -1).reshape(-1, n_a)
+    for corner in corners:
+        e = np.zeros(x.shape[-1])
+        e[0], e[1:1 + n_a] = 1.0, c * corner
+        total = total + np.abs(np.einsum("p,npk->nk", e, hat)).sum(-1)
+    return total / len(corners)
+
+
+def noise_probe(args, agent, data, seed, n, s, g, geo, gamma, config, v_star_next, results):
+    """The bias of Eq. (8)'s target from noise in the bootstrapped values: ``T(V* + noise)``
+    against ``V*`` for value noise of standard deviation ``sigma`` (each row's ``V(s', g)``,
+    the trained network's fit error is ~0.2), for each ``k``, and for a double estimator
+    inside the neighbourhood (Eq. 13-14's idea: one half of the neighbours picks the box
+    corner, the other values it, and the other way round, averaged)."""
+    nc = config.neighbours
+    rng = np.random.default_rng(0)
+    apart = np.flatnonzero(np.any(s != g, axis=1))
+    rows = np.sort(rng.choice(apart, min(args.pairs, apart.size), replace=False))
+    d_star = geo.length(s[rows], g[rows])
+    v_star = value_of(d_star, gamma)
+    wall = d_star / STEP_SCALE - np.abs(s[rows] - g[rows]).max(1) / STEP_SCALE >= WALL_STEPS
+    r, done = jnp.asarray(np.asarray(data.r[:n])), jnp.asarray(np.asarray(data.done[:n]))
+    noise = rng.standard_normal(n).astype(np.float32)
+    c, action_set = agent.problem.action_length, agent.problem.action_set
+    out = {}
+    for k in args.probe_k:
+        t = time.perf_counter()
+        nb = find_neighbours(purpose_key(seed, "neighbours"), s, g, s[rows], g[rows], k=k,
+                             radius_s=nc.radius_s, radius_g=nc.radius_g, growth=nc.growth)
+        ii = jnp.asarray(nb.idx)
+        offsets = neighbour_offsets(jnp.asarray(s)[ii], jnp.asarray(s[rows]), jnp.asarray(g)[ii],
+                                    jnp.asarray(g[rows]))
+        a_nb = jnp.asarray(np.asarray(data.a[:n]))[ii]
+        print(f"k = {k}: neighbourhoods {time.perf_counter() - t:.0f} s", flush=True)
+        a_np, off_np = np.asarray(a_nb, np.float64), np.asarray(offsets, np.float64)
+        for model, m in (("action", 0), ("action+state", 2), ("action+state+goal", 4)):
+            w = target_weights(a_np[::10], off_np[::10, :, :m], c)  # every 10th row
+            out[f"k={k} {model} sum|w|"] = entry = {
+                "mean": float(w.mean()), "median": float(np.median(w)),
+                "p90": float(np.percentile(w, 90)), "gamma_sum_above_1": float((gamma * w > 1).mean())}
+            print(f"k = {k}, {model}: sum |w_j| of the target {json.dumps(entry)}", flush=True)
+        for sigma in args.probe_sigma:
+            y = np.asarray(bootstrap_values(r, done, jnp.asarray(v_star_next + sigma * noise), gamma))
+            y_nb = jnp.asarray(y)[ii]
+            alpha, beta = fit_local_linear(a_nb, y_nb, offsets=offsets)
+            single, _ = lazy_target(alpha, beta, y_nb, c, True, action_set)
+            halves = [fit_local_linear(a_nb[:, h::2], y_nb[:, h::2], offsets=offsets[:, h::2])
+                      for h in (0, 1)]
+            double = 0.5 * sum(a_e + jnp.sum(b_e * greedy_action(b_p, c, action_set), -1)
+                               for (_, b_p), (a_e, b_e) in (halves, halves[::-1]))
+            double = jnp.minimum(double, jnp.max(y_nb, -1))
+            for name, target in (("single", single), ("double", double)):
+                err = np.asarray(target, np.float64) - v_star
+                out[f"k={k} sigma={sigma} {name}"] = entry = {
+                    "mean_error": float(err.mean()), "mean_error_wall": float(err[wall].mean()),
+                    "mean_abs_error": float(np.abs(err).mean())}
+                print(f"k = {k}, sigma = {sigma}, {name}: {json.dumps(entry)}", flush=True)
+    results["noise_probe"] = out
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("run_dir", help="a pointmaze run directory with a trained lazy Q")
+    p.add_argument("--method", default="lazy")
+    p.add_argument("--pairs", type=int, default=200000, help="rows scored for the fixed point")
+    p.add_argument("--values", nargs="*", default=[], metavar="RUN_DIR:METHOD",
+                   help="also the policy with other trained values (e.g. GCIVL's V of the same seed)")
+    p.add_argument("--skip-fixed-point", action="store_true")
+    p.add_argument("--skip-policy", action="store_true")
+    p.add_argument("--probe-k", type=int, nargs="*", default=[],
+                   help="neighbourhood sizes for the value-noise probe (none: no probe)")
+    p.add_argument("--probe-sigma", type=float, nargs="*", default=[0.0, 0.1, 0.2, 0.4])
+    p.add_argument("--out", default=None, help="oracle.json (default: RUN_DIR/oracle.json)")
+    args = p.parse_args()
+    loaded = load_run(args.run_dir, args.method)
+    config, agent, sd, seed = loaded.config, loaded.agent, loaded.data, loaded.seeds[0]
+    if config.task != "pointmaze":
+        raise SystemExit(f"{args.run_dir} is a {config.task} run, not pointmaze")
+    gamma = config.train.gamma
+    n = int(sd.n_valid[0])
+    data = sd.seed_data(0)
+    s, s2, g = (np.asarray(x[:n]) for x in (data.s, data.s_next, data.g))
+    r, done = np.asarray(data.r[:n]), np.asarray(data.done[:n])
+    t = time.perf_counter()
+    geo = Geodesic(get_maze(config.collect.maze))
+    print(f"geodesics: {len(geo.nodes)} nodes ({time.perf_counter() - t:.0f} s)", flush=True)
+
+    def table(v_next):  # y_j of every row
+        return np.asarray(bootstrap_values(jnp.asarray(r), jnp.asarray(done), jnp.asarray(v_next), gamma))
+
+    v_star_next = value_of(geo.length(s2, g), gamma).astype(np.float32)
+    v_line_next = value_of(np.abs(s2 - g).max(1), gamma).astype(np.float32)
+    v_trained = agent.value_fn(loaded.state())
+    v_net_next = np.concatenate([np.asarray(v_trained(jnp.asarray(s2[i:i + 65536]), jnp.asarray(g[i:i + 65536])))
+                                 for i in range(0, n, 65536)])
+    tables = {"V* (walls)": table(v_star_next), "V_line (no walls)": table(v_line_next),
+              "trained V": table(v_net_next)}
+    for spec in args.values:
+        run_dir, method = spec.split(":", 1)
+        other = load_run(run_dir, method)
+        if other.seeds[0] != seed:
+            raise SystemExit(f"{spec}: seed {other.seeds[0]}, not the lazy run's {seed}")
+        fn = other.agent.value_fn(other.state())
+        tables[f"V of {method.split(':steps=')[0]} ({Path(run_dir).name})"] = table(np.concatenate(
+            [np.asarray(fn(jnp.asarray(s2[i:i + 65536]), jnp.asarray(g[i:i + 65536])))
+             for i in range(0, n, 65536)]))
+    results: dict = {"run_dir": args.run_dir, "seed": seed, "policy": {}, "fixed_point": {}}
+
+    # ---- the fixed point: T V at the rows (the run's neighbourhoods of block 0)
+    if not args.skip_fixed_point:
+        fixed_point(args, agent, data, seed, n, s, g, geo, gamma, config, loaded, tables, results)
+
+    if args.probe_k:
+        noise_probe(args, agent, data, seed, n, s, g, geo, gamma, config, v_star_next, results)
+
+    # ---- the policy with each value table
+    base = agent.policies(loaded.states, sd.stacked, sd.n_valid)
+    for name, y in ({} if args.skip_policy else tables).items():
+        values = np.zeros(np.shape(base.values), np.float32)
+        values[0, :n] = y
+        policy = base.replace(values=jnp.asarray(values))
+        t = time.perf_counter()
+        ev = loaded.task.evaluate(agent.act, policy, config, [seed])
+        res = ev.per_seed[0]["tasks"]
+        results["policy"][name] = res
+        print(f"policy with {name}: {loaded.task.log_line(ev.per_seed[0])} "
+              f"({time.perf_counter() - t:.0f} s)", flush=True)
+    out = Path(args.out) if args.out else Path(args.run_dir) / "oracle.json"
+    out.write_text(json.dumps(results, indent=1))
+    print(f"-> {out}")
+
+
+if __name__ == "__main__":
+    main()
