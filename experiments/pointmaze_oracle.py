@@ -30,6 +30,7 @@ accurate to a few steps).
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import sys
 import time
@@ -43,11 +44,25 @@ from lazyq_jax.keys import purpose_key
 from lazyq_jax.local_model import fit_local_linear, greedy_action, neighbour_offsets
 from lazyq_jax.neighbours import find_neighbours
 from lazyq_jax.run import load_run
+from lazyq_jax.stats import format_ci, t_interval
 from lazyq_jax.targets import bootstrap_values, lazy_target
-from lazyq_jax.tasks.pointmaze.maze import STEP_SCALE, get_maze
+from lazyq_jax.tasks.pointmaze.maze import MAZE_UNIT, STEP_SCALE, get_maze
 
 sys.path.insert(0, str(Path(__file__).parent))
-from pointmaze_walls import WALL_STEPS, Geodesic, value_of
+from pointmaze_walls import RADIUS, WALL_STEPS, Geodesic, value_of  # noqa: I001
+
+
+CLEARANCE = (0.0, 0.1, 0.25, 0.5, 1.0, np.inf)  # bins of the state's distance from a wall
+
+
+def clearance(maze, s: np.ndarray) -> np.ndarray:
+    """How far the point's ball (radius 0.7) at ``s [n, 2]`` is from the nearest wall box."""
+    walls = maze.ij_to_xy(np.argwhere(maze.map == 1))
+    out = np.full(len(s), np.inf)
+    for w in walls:  # a few dozen boxes
+        gap = np.maximum(np.abs(s - w) - MAZE_UNIT / 2, 0.0)
+        out = np.minimum(out, np.linalg.norm(gap, axis=1))
+    return out - RADIUS
 
 
 def fixed_point(args, agent, data, seed, n, s, g, geo, gamma, config, loaded, tables, results):
@@ -62,6 +77,7 @@ def fixed_point(args, agent, data, seed, n, s, g, geo, gamma, config, loaded, ta
     d_star = geo.length(s[rows], g[rows])
     v_star = value_of(d_star, gamma)
     wall = d_star / STEP_SCALE - np.abs(s[rows] - g[rows]).max(1) / STEP_SCALE >= WALL_STEPS
+    clear = clearance(get_maze(config.collect.maze), s[rows])
     model = config.neighbours.local_model
     ii = jnp.asarray(idx[rows])
     offsets = None
@@ -87,7 +103,10 @@ def fixed_point(args, agent, data, seed, n, s, g, geo, gamma, config, loaded, ta
         target, unclipped = np.asarray(target, np.float64), np.asarray(unclipped, np.float64)
         ref = v_star if name.startswith("V*") else v_rows_net
         entry = {}
-        for part, m in (("all", np.ones_like(wall)), ("wall pairs", wall)):
+        parts = [("all", np.ones_like(wall)), ("wall pairs", wall)]
+        parts += [(f"state {lo}-{hi} from a wall", (clear >= lo) & (clear < hi))
+                  for lo, hi in itertools.pairwise(CLEARANCE)]
+        for part, m in parts:
             err = target[m] - ref[m]
             entry[part] = {"rows": int(m.sum()), "mean_error": float(err.mean()),
                            "mean_abs_error": float(np.abs(err).mean()),
@@ -99,15 +118,20 @@ def fixed_point(args, agent, data, seed, n, s, g, geo, gamma, config, loaded, ta
         print(f"T({name}): {json.dumps(entry)}", flush=True)
 
 
-def target_weights(a_nb, offsets, c):
+def target_weights(a_nb, offsets, c, data_actions=False):
     """``sum_j |w_j|`` of Eq. (7)'s target ``alpha + c sign(beta) . beta = sum_j w_j y_j`` as a
     linear function of the neighbours' values, for each box corner (the sign pattern held
     fixed), averaged over the corners: ``[rows]``.  A DQN target has ``sum |w| = 1``; above
-    ``1 / gamma`` the backup is no contraction in the max norm."""
+    ``1 / gamma`` the backup is no contraction in the max norm.  ``data_actions``: the
+    target ``alpha + beta . a_j`` at each neighbour's own action, averaged over them."""
     x = np.concatenate([np.ones(a_nb.shape[:-1] + (1,)), a_nb, offsets], -1)
     hat = np.linalg.solve(np.einsum("nki,nkj->nij", x, x) + 1e-9 * np.eye(x.shape[-1]),
                           np.swapaxes(x, 1, 2))  # [rows, p, k]: coefficients = hat @ y
-    n_a, total = a_nb.shape[-1], 0.0
+    n_a = a_nb.shape[-1]
+    if data_actions:
+        w = hat[:, :1] + np.einsum("nja,nak->njk", a_nb, hat[:, 1:1 + n_a])  # [rows, k_j, k]
+        return np.abs(w).sum(-1).mean(-1)
+    total = 0.0
     corners = np.stack(np.meshgrid(*[[-1.0, 1.0]] * n_a), -1).reshape(-1, n_a)
     for corner in corners:
         e = np.zeros(x.shape[-1])
@@ -143,8 +167,10 @@ def noise_probe(args, agent, data, seed, n, s, g, geo, gamma, config, v_star_nex
         a_nb = jnp.asarray(np.asarray(data.a[:n]))[ii]
         print(f"k = {k}: neighbourhoods {time.perf_counter() - t:.0f} s", flush=True)
         a_np, off_np = np.asarray(a_nb, np.float64), np.asarray(offsets, np.float64)
-        for model, m in (("action", 0), ("action+state", 2), ("action+state+goal", 4)):
-            w = target_weights(a_np[::10], off_np[::10, :, :m], c)  # every 10th row
+        for model, m in (("action", 0), ("action+state", 2), ("action+state+goal", 4),
+                         ("action+state+goal, data actions", 4)):
+            data_actions = "data actions" in model
+            w = target_weights(a_np[::10], off_np[::10, :, :m], c, data_actions)  # every 10th row
             out[f"k={k} {model} sum|w|"] = entry = {
                 "mean": float(w.mean()), "median": float(np.median(w)),
                 "p90": float(np.percentile(w, 90)), "gamma_sum_above_1": float((gamma * w > 1).mean())}
@@ -159,7 +185,10 @@ def noise_probe(args, agent, data, seed, n, s, g, geo, gamma, config, v_star_nex
             double = 0.5 * sum(a_e + jnp.sum(b_e * greedy_action(b_p, c, action_set), -1)
                                for (_, b_p), (a_e, b_e) in (halves, halves[::-1]))
             double = jnp.minimum(double, jnp.max(y_nb, -1))
-            for name, target in (("single", single), ("double", double)):
+            # the maximum over the neighbourhood's own actions instead of the box's corners
+            in_data = jnp.minimum(alpha + jnp.max(jnp.einsum("nka,na->nk", a_nb, beta), -1),
+                                  jnp.max(y_nb, -1))
+            for name, target in (("single", single), ("double", double), ("data actions", in_data)):
                 err = np.asarray(target, np.float64) - v_star
                 out[f"k={k} sigma={sigma} {name}"] = entry = {
                     "mean_error": float(err.mean()), "mean_error_wall": float(err[wall].mean()),
@@ -168,9 +197,31 @@ def noise_probe(args, agent, data, seed, n, s, g, geo, gamma, config, v_star_nex
     results["noise_probe"] = out
 
 
+def policy_table(paths) -> None:
+    """The policy's success with each value over the seeds of several oracle.json files: mean
+    [95 % t interval] of the 5-task success, and each task's mean."""
+    runs = [json.loads(Path(p).read_text()) for p in paths]
+    for r in runs:  # "V of METHOD (RUN)" as written by an earlier version: the method only
+        r["policy"] = {k.split(" (")[0] if k.startswith("V of") else k: v for k, v in r["policy"].items()}
+    print(f"seeds {[r['seed'] for r in runs]}\n")
+    print("| V in the policy's y_j | success | per seed | task 1 | task 2 | task 3 | task 4 | task 5 |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name in runs[0]["policy"]:
+        if not all(name in r["policy"] for r in runs):
+            continue
+        per = [r["policy"][name] for r in runs]
+        rates = [x["success_rate"] for x in per]
+        tasks = [np.mean([x["per_task"][i]["success_rate"] for x in per]) for i in range(5)]
+        print(f"| {name} | {format_ci(t_interval(rates))} | "
+              f"{' / '.join(f'{100 * m:.1f}' for m in rates)} | "
+              + " | ".join(f"{100 * v:.1f} %" for v in tasks) + " |")
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("run_dir", help="a pointmaze run directory with a trained lazy Q")
+    p.add_argument("run_dir", nargs="?", help="a pointmaze run directory with a trained lazy Q")
+    p.add_argument("--table", nargs="*", default=None, metavar="ORACLE_JSON",
+                   help="only print the policy table over seeds of these oracle.json files")
     p.add_argument("--method", default="lazy")
     p.add_argument("--pairs", type=int, default=200000, help="rows scored for the fixed point")
     p.add_argument("--values", nargs="*", default=[], metavar="RUN_DIR:METHOD",
@@ -182,6 +233,10 @@ def main() -> None:
     p.add_argument("--probe-sigma", type=float, nargs="*", default=[0.0, 0.1, 0.2, 0.4])
     p.add_argument("--out", default=None, help="oracle.json (default: RUN_DIR/oracle.json)")
     args = p.parse_args()
+    if args.table is not None:
+        return policy_table(args.table)
+    if args.run_dir is None:
+        p.error("give a run directory (or --table)")
     loaded = load_run(args.run_dir, args.method)
     config, agent, sd, seed = loaded.config, loaded.agent, loaded.data, loaded.seeds[0]
     if config.task != "pointmaze":
@@ -211,7 +266,7 @@ def main() -> None:
         if other.seeds[0] != seed:
             raise SystemExit(f"{spec}: seed {other.seeds[0]}, not the lazy run's {seed}")
         fn = other.agent.value_fn(other.state())
-        tables[f"V of {method.split(':steps=')[0]} ({Path(run_dir).name})"] = table(np.concatenate(
+        tables[f"V of {method.split(':steps=')[0]}"] = table(np.concatenate(
             [np.asarray(fn(jnp.asarray(s2[i:i + 65536]), jnp.asarray(g[i:i + 65536])))
              for i in range(0, n, 65536)]))
     results: dict = {"run_dir": args.run_dir, "seed": seed, "policy": {}, "fixed_point": {}}

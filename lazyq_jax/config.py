@@ -101,6 +101,9 @@ class TrainConfig:
     then ``epochs`` passes of Adam over the whole dataset on ``(V - Y)^2`` (Eq. 10).
     ``clip=False`` uses the unclipped Eq. (7) targets (the paper's ablation).
     ``resample_neighbours`` draws new k-subsets of each neighbourhood every cycle.
+    ``target_max``: Eq. (7)'s maximum over the action ``"set"`` (the paper's), or over the
+    neighbourhood's own actions, ``"data"`` (``alpha + max_j beta . a_j``: an in-sample
+    maximum that extrapolates less; ``docs/pointmaze.md``); the policy stays Eq. (9).
     """
 
     gamma: float = 0.9
@@ -114,8 +117,15 @@ class TrainConfig:
     clip: bool = True
     resample_neighbours: bool = False
     target_batch_size: int = 65536
+    target_max: str = "set"
 
     def __post_init__(self) -> None:
+        _check(self.target_max in ("set", "data"),
+               f"TrainConfig.target_max must be 'set' (Eq. 7 over the action set) or 'data' (over "
+               f"the neighbourhood's actions), got {self.target_max!r}")
+        _check(not (self.double_dqn and self.target_max == "data"),
+               "TrainConfig: double_dqn picks the action set's maximiser (Eq. 13); use it with "
+               "target_max='set'")
         _check(0.0 <= self.gamma < 1.0, f"TrainConfig.gamma must lie in [0, 1), got {self.gamma!r}")
         _counts(self, "cycles", "epochs", "batch_size", "width", "target_batch_size")
         _check(_is_int(self.depth) and self.depth >= 2,

@@ -23,15 +23,19 @@ from lazyq_jax.types import Transitions
 ValueFn = Callable[[jax.Array, jax.Array], jax.Array]  # (s [B, d_s], g [B] | [B, d_g] | None) -> V [B]
 
 
-def lazy_target(alpha, beta, values, action_length, clip=True, action_set="ball"):
+def lazy_target(alpha, beta, values, action_length, clip=True, action_set="ball", actions=None):
     """``V(s, g)`` of the lazy model: Eq. (7) ``alpha + max_a beta.a`` (``c ||beta||`` on the
     ball; ``clip=False``) or Eq. (8) ``min(alpha + max_a beta.a, max_j values_j)``
-    (``clip=True``).
+    (``clip=True``).  With the neighbours' ``actions [..., k, n_a]`` the maximum is over
+    them instead of the action set: ``alpha + max_j beta . a_j`` (``target_max="data"``).
 
     Returns ``(target [...], clip_active [...] bool)``; ``clip_active`` marks where the
     max-bound of Eq. (8) was the smaller term (always false when ``clip=False``).
     """
-    linear = alpha + max_linear(beta, action_length, action_set)
+    if actions is None:
+        linear = alpha + max_linear(beta, action_length, action_set)
+    else:
+        linear = alpha + jnp.max(jnp.einsum("...ka,...a->...k", actions, beta), axis=-1)
     return _clip(linear, values, clip)
 
 

@@ -257,7 +257,8 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
         key, k_epochs = jax.random.split(state.key)
         # The target network: the parameters frozen at the start of the cycle (Eq. 11-12).
         alpha, beta, y_nb = fits(state, data, idx)
-        dqn = lazy_target(alpha, beta, y_nb, action_length, config.clip, action_set)
+        actions = data.a[idx] if config.target_max == "data" else None
+        dqn = lazy_target(alpha, beta, y_nb, action_length, config.clip, action_set, actions)
 
         def one_epoch(state, xs):
             e, k = xs

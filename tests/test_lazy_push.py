@@ -14,7 +14,7 @@ from conftest import PUSH
 from lazyq_jax.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from lazyq_jax.config import override
 from lazyq_jax.run import evaluate_run, load_run
-from lazyq_jax.targets import dataset_targets
+from lazyq_jax.targets import dataset_targets, lazy_target, local_fits
 from lazyq_jax.train import make_train
 
 
@@ -71,6 +71,24 @@ def test_dqn_and_double_dqn_both_run_and_differ(trained):
         assert np.isfinite(float(metrics["loss"]))
         results[double] = state.params
     assert not tree_equal(results[False], results[True])
+
+
+def test_target_max_over_the_data_in_a_cycle(trained):
+    """``train.target_max=data``: the cycle's targets are ``alpha + max_j beta . a_j`` over
+    each neighbourhood's actions (by hand from the frozen network's fits), and on average
+    below Eq. (7)'s maximum over the ball that holds those actions."""
+    _, _, data, idx = trained
+    cfg = override(PUSH, ["train.target_max=data", "train.epochs=1"]).train
+    trainer = make_train(cfg, 0.1, state_scale=0.6)
+    state = trainer.init(jax.random.PRNGKey(0), data)
+    alpha, beta, y_nb = local_fits(trainer.value_fn(state), data, idx, gamma=cfg.gamma)
+    expect, _ = lazy_target(alpha, beta, y_nb, 0.1, cfg.clip, "ball", data.a[idx])
+    ball, _ = lazy_target(alpha, beta, y_nb, 0.1, cfg.clip, "ball")
+    _, metrics = jax.jit(trainer.run_cycle)(state, data, idx)
+    n = data.size  # float32 means of n rows summed in another order
+    np.testing.assert_allclose(float(metrics["target_mean"]), float(jnp.mean(expect)),
+                               rtol=max(n * 2.0 ** -24, 1e-6))
+    assert float(jnp.mean(expect)) < float(jnp.mean(ball))
 
 
 def test_checkpoint_round_trip_is_exact(tmp_path, trained):

@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from lazyq_jax.config import ConfigError, TrainConfig
 from lazyq_jax.local_model import precompute_projection
 from lazyq_jax.targets import (bootstrap_values, dataset_targets, evaluate_in_batches, lazy_target,
                                local_fits)
@@ -140,3 +141,30 @@ def test_local_fits_with_goal_offsets_against_lstsq(goal):
         scale = np.abs(coef).max() + np.abs(y[idx[i]]).max()
         np.testing.assert_allclose(alpha[i], coef[0], atol=2e-3 * scale)
         np.testing.assert_allclose(beta[i], coef[1:3], atol=2e-3 * scale)
+
+
+def test_lazy_target_over_the_neighbours_actions():
+    """``target_max="data"``: ``alpha + max_j beta . a_j`` over each neighbourhood's own
+    actions (brute force in NumPy), clipped as Eq. (8); never above Eq. (7)'s maximum over
+    the box that holds those actions."""
+    rng = np.random.default_rng(0)
+    alpha = rng.normal(size=(6,)).astype(np.float32)
+    beta = rng.normal(size=(6, 2)).astype(np.float32)
+    actions = rng.uniform(-1, 1, (6, 5, 2)).astype(np.float32)
+    values = rng.normal(size=(6, 5)).astype(np.float32) + 3.0  # the bound mostly inactive
+    expect = alpha + np.array([max(float(beta[i] @ a) for a in actions[i]) for i in range(6)])
+    got, active = lazy_target(alpha, beta, values, 1.0, clip=False, action_set="box", actions=actions)
+    np.testing.assert_allclose(np.asarray(got), expect, rtol=1e-6, atol=1e-6)
+    assert not np.any(np.asarray(active))
+    clipped, active = lazy_target(alpha, beta, values, 1.0, clip=True, action_set="box", actions=actions)
+    np.testing.assert_allclose(np.asarray(clipped), np.minimum(expect, values.max(1)), rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(active), expect > values.max(1))
+    box, _ = lazy_target(alpha, beta, values, 1.0, clip=False, action_set="box")
+    assert np.all(np.asarray(got) <= np.asarray(box) + 1e-6)
+
+
+def test_target_max_is_validated():
+    with pytest.raises(ConfigError, match="target_max must be 'set'"):
+        TrainConfig(target_max="corner")
+    with pytest.raises(ConfigError, match="double_dqn"):
+        TrainConfig(target_max="data", double_dqn=True)
