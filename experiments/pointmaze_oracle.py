@@ -96,10 +96,11 @@ def fixed_point(args, agent, data, seed, n, s, g, geo, gamma, config, loaded, ta
         y = tables[name]
         y_nb = jnp.asarray(y)[ii]
         alpha, beta = fit_local_linear(a_nb, y_nb, offsets=offsets)
+        over = a_nb if config.train.target_max == "data" else None  # the run's own target
         target, clipped = lazy_target(alpha, beta, y_nb, agent.problem.action_length, True,
-                                      agent.problem.action_set)
+                                      agent.problem.action_set, over)
         unclipped, _ = lazy_target(alpha, beta, y_nb, agent.problem.action_length, False,
-                                   agent.problem.action_set)
+                                   agent.problem.action_set, over)
         target, unclipped = np.asarray(target, np.float64), np.asarray(unclipped, np.float64)
         ref = v_star if name.startswith("V*") else v_rows_net
         entry = {}
