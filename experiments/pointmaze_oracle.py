@@ -65,6 +65,16 @@ def clearance(maze, s: np.ndarray) -> np.ndarray:
     return out - RADIUS
 
 
+def scored_rows(rng, pairs, s, g, geo, gamma):
+    """``pairs`` rows drawn by ``rng`` among those with the goal apart from the state (sorted),
+    ``V*`` there and which of them are wall pairs (the detour adds >= WALL_STEPS steps)."""
+    apart = np.flatnonzero(np.any(s != g, axis=1))
+    rows = np.sort(rng.choice(apart, min(pairs, apart.size), replace=False))
+    d_star = geo.length(s[rows], g[rows])
+    wall = d_star / STEP_SCALE - np.abs(s[rows] - g[rows]).max(1) / STEP_SCALE >= WALL_STEPS
+    return rows, value_of(d_star, gamma), wall
+
+
 def fixed_point(args, agent, data, seed, n, s, g, geo, gamma, config, loaded, tables, results):
     """T V against V* (and the trained V) at sampled rows; see the module docstring."""
     t = time.perf_counter()
@@ -72,11 +82,7 @@ def fixed_point(args, agent, data, seed, n, s, g, geo, gamma, config, loaded, ta
     idx = np.asarray(nb.idx[:n])
     print(f"neighbourhoods: {time.perf_counter() - t:.0f} s", flush=True)
     rng = np.random.default_rng(0)
-    apart = np.flatnonzero(np.any(s != g, axis=1))
-    rows = np.sort(rng.choice(apart, min(args.pairs, apart.size), replace=False))
-    d_star = geo.length(s[rows], g[rows])
-    v_star = value_of(d_star, gamma)
-    wall = d_star / STEP_SCALE - np.abs(s[rows] - g[rows]).max(1) / STEP_SCALE >= WALL_STEPS
+    rows, v_star, wall = scored_rows(rng, args.pairs, s, g, geo, gamma)
     clear = clearance(get_maze(config.collect.maze), s[rows])
     model = config.neighbours.local_model
     ii = jnp.asarray(idx[rows])
@@ -149,11 +155,7 @@ def noise_probe(args, agent, data, seed, n, s, g, geo, gamma, config, v_star_nex
     corner, the other values it, and the other way round, averaged)."""
     nc = config.neighbours
     rng = np.random.default_rng(0)
-    apart = np.flatnonzero(np.any(s != g, axis=1))
-    rows = np.sort(rng.choice(apart, min(args.pairs, apart.size), replace=False))
-    d_star = geo.length(s[rows], g[rows])
-    v_star = value_of(d_star, gamma)
-    wall = d_star / STEP_SCALE - np.abs(s[rows] - g[rows]).max(1) / STEP_SCALE >= WALL_STEPS
+    rows, v_star, wall = scored_rows(rng, args.pairs, s, g, geo, gamma)
     r, done = jnp.asarray(np.asarray(data.r[:n])), jnp.asarray(np.asarray(data.done[:n]))
     noise = rng.standard_normal(n).astype(np.float32)
     c, action_set = agent.problem.action_length, agent.problem.action_set
