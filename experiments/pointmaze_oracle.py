@@ -45,7 +45,7 @@ from lazyq_jax.local_model import fit_local_linear, greedy_action, neighbour_off
 from lazyq_jax.neighbours import find_neighbours
 from lazyq_jax.run import load_run
 from lazyq_jax.stats import format_ci, t_interval
-from lazyq_jax.targets import bootstrap_values, lazy_target
+from lazyq_jax.targets import bootstrap_values, evaluate_in_batches, lazy_target
 from lazyq_jax.tasks.pointmaze.maze import MAZE_UNIT, STEP_SCALE, get_maze
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -259,8 +259,11 @@ def main() -> None:
     v_star_next = value_of(geo.length(s2, g), gamma).astype(np.float32)
     v_line_next = value_of(np.abs(s2 - g).max(1), gamma).astype(np.float32)
     v_trained = agent.value_fn(loaded.state())
-    v_net_next = np.concatenate([np.asarray(v_trained(jnp.asarray(s2[i:i + 65536]), jnp.asarray(g[i:i + 65536])))
-                                 for i in range(0, n, 65536)])
+
+    def at_next(v):  # V(s'_j, g_j) of every row, in chunks
+        return np.asarray(evaluate_in_batches(v, jnp.asarray(s2), jnp.asarray(g), 65536))
+
+    v_net_next = at_next(v_trained)
     tables = {"V* (walls)": table(v_star_next), "V_line (no walls)": table(v_line_next),
               "trained V": table(v_net_next)}
     for spec in args.values:
@@ -269,9 +272,7 @@ def main() -> None:
         if other.seeds[0] != seed:
             raise SystemExit(f"{spec}: seed {other.seeds[0]}, not the lazy run's {seed}")
         fn = other.agent.value_fn(other.state())
-        tables[f"V of {method.split(':steps=')[0]}"] = table(np.concatenate(
-            [np.asarray(fn(jnp.asarray(s2[i:i + 65536]), jnp.asarray(g[i:i + 65536])))
-             for i in range(0, n, 65536)]))
+        tables[f"V of {method.split(':steps=')[0]}"] = table(at_next(fn))
     results: dict = {"run_dir": args.run_dir, "seed": seed, "policy": {}, "fixed_point": {}}
 
     # ---- the fixed point: T V at the rows (the run's neighbourhoods of block 0)
