@@ -52,6 +52,9 @@ VARIANTS = {
     "fingertip_move0.06": FINGERTIP + ["collect.arm.action_length=0.06"],
     # the online preset: 2500 random starts, then 5 rounds of the agent's pushes, 20,000 moves
     "online_fingertip_offsets": FINGERTIP_OFFSETS,
+    # 4x the paper's moves: the paper's 5000 random starts, then 5 rounds of the agent's pushes
+    "online_fingertip_offsets_x4": FINGERTIP_OFFSETS + ["collect.n_starts=5000", "online.episodes=1200",
+                                                        "online.max_moves=40000"],
     "online_state": STATE,
 }
 
