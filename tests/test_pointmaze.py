@@ -56,8 +56,12 @@ def test_maze_geometry_is_ogbench(maze, gym_env):
             goal_xy = np.asarray(maze.ij_to_xy(goal))
             sub, _ = u.get_oracle_subgoal(xy, goal_xy)
             d = sub - xy
-            np.testing.assert_array_equal(maze.subgoal_direction(xy[None], goal_xy[None])[0],
-                                          d / (np.linalg.norm(d) + 1e-6))
+            # Same float64 formula; only |d| may be summed another way (NumPy's norm of one
+            # vector is a dot product, of a batch a reduction: with or without FMA by CPU), a
+            # rounding or two in |d| and so in a unit component: 8 ulps of 1.0 bound it.
+            np.testing.assert_allclose(maze.subgoal_direction(xy[None], goal_xy[None])[0],
+                                       d / (np.linalg.norm(d) + 1e-6), rtol=0,
+                                       atol=8 * np.finfo(np.float64).eps)
 
 
 def test_step_equals_ogbench_env_with_wall_contacts(maze, gym_env):
