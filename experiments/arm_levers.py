@@ -49,6 +49,11 @@ VARIANTS = {
     "state_k40": STATE + ["neighbours.k=40"],
     "state_offsets_k40": IN_Q + OFFSETS + ["neighbours.k=40"],
     "fingertip_offsets_k40": FINGERTIP_OFFSETS + ["neighbours.k=40"],
+    # distance-weighted local fits (Epanechnikov weights at each neighbourhood's radii)
+    "fingertip_offsets_epan": FINGERTIP_OFFSETS + ["neighbours.fit_weights=epanechnikov"],
+    "fingertip_offsets_epan_k40": FINGERTIP_OFFSETS + ["neighbours.fit_weights=epanechnikov", "neighbours.k=40"],
+    # the fingertip relative to the disk alone (no joint angles in the search space)
+    "fingertip_offsets_w0": AT_TIP[:2] + ["neighbours.feature_weight=0"] + OFFSETS,
     "fingertip_move0.06": FINGERTIP + ["collect.arm.action_length=0.06"],
     # the online preset: 2500 random starts, then 5 rounds of the agent's pushes, 20,000 moves
     "online_fingertip_offsets": FINGERTIP_OFFSETS,

@@ -49,6 +49,7 @@ def _positive(obj: Any, *names: str) -> None:
 
 
 LOCAL_MODELS = ("action", "action+state", "action+state+goal")
+FIT_WEIGHTS = ("uniform", "epanechnikov")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,7 +68,12 @@ class NeighbourConfig:
     each neighbour's state offset from the centre as a covariate: ``alpha + beta . a +
     gamma . (s_j - s)``) or ``"action+state+goal"`` (and the goal offset ``g_j - g``,
     wrapped for angles: where the value changes across the goal ball, e.g. vector goals in
-    a maze).  The tasks set the radii of their own spaces (e.g. radians in joint space)."""
+    a maze).  ``fit_weights``: how the neighbours count in the local fit (Eq. 5-6):
+    ``"uniform"`` (the paper's least squares) or ``"epanechnikov"`` (weighted least squares
+    with ``(1 - d_s^2 / R_s^2)(1 - d_g^2 / R_g^2)``, ``d`` a neighbour's distance from the
+    centre in the search space and ``R`` the radii of its neighbourhood's level: the
+    nearest neighbours count most, so the fit is more local than the ball).  The tasks set
+    the radii of their own spaces (e.g. radians in joint space)."""
 
     k: int = 20
     radius_s: float = 0.06
@@ -77,8 +83,11 @@ class NeighbourConfig:
     features: str = "state"
     feature_weight: float = 0.25
     local_model: str = "action"
+    fit_weights: str = "uniform"
 
     def __post_init__(self) -> None:
+        _check(self.fit_weights in FIT_WEIGHTS,
+               f"NeighbourConfig.fit_weights must be one of {FIT_WEIGHTS}, got {self.fit_weights!r}")
         _check(isinstance(self.features, str) and bool(self.features),
                f"NeighbourConfig.features must be a feature map's name, got {self.features!r}")
         _check(isinstance(self.feature_weight, (int, float)) and not isinstance(self.feature_weight, bool)

@@ -94,20 +94,48 @@ def fit_local_linear(actions, values, weights=None, offsets=None):
     return alpha, beta
 
 
+def goal_offsets(g_nb, g0, angle: bool):
+    """Each neighbour's goal offset ``g_j - g``: vectors ``[..., k, d_g]`` / ``[..., d_g]`` give
+    ``[..., k, d_g]``; angles (``angle=True``) ``[..., k]`` / ``[...]`` their difference wrapped
+    to ``[-pi, pi)``, as one column ``[..., k, 1]``."""
+    g_nb, g0 = jnp.asarray(g_nb, jnp.float32), jnp.asarray(g0, jnp.float32)
+    if angle:
+        d = g_nb - g0[..., None]
+        return (jnp.mod(d + jnp.pi, 2 * jnp.pi) - jnp.pi)[..., None]
+    return g_nb - g0[..., None, :]
+
+
 def neighbour_offsets(s_nb, s0, g_nb=None, g0=None):
     """The covariates of the extended local models: each neighbour's state offset ``s_j - s``
     (``s_nb [..., k, d_s]``, ``s0 [..., d_s]``) and, if goals are given, its goal offset
-    ``g_j - g`` (vectors ``[..., k, d_g]`` / ``[..., d_g]``, or angles ``[..., k]`` / ``[...]``
-    wrapped to ``[-pi, pi)``): ``[..., k, m]`` for :func:`fit_local_linear`'s ``offsets``."""
+    (:func:`goal_offsets`): ``[..., k, m]`` for :func:`fit_local_linear`'s ``offsets``."""
     parts = [jnp.asarray(s_nb, jnp.float32) - jnp.asarray(s0, jnp.float32)[..., None, :]]
     if g_nb is not None:
-        g_nb, g0 = jnp.asarray(g_nb, jnp.float32), jnp.asarray(g0, jnp.float32)
-        if g_nb.ndim == parts[0].ndim - 1:  # angles: the wrapped difference, one column
-            d = g_nb - g0[..., None]
-            parts.append((jnp.mod(d + jnp.pi, 2 * jnp.pi) - jnp.pi)[..., None])
-        else:
-            parts.append(g_nb - g0[..., None, :])
+        parts.append(goal_offsets(g_nb, g0, angle=jnp.ndim(g_nb) == parts[0].ndim - 1))
     return jnp.concatenate(parts, -1)
+
+
+def epanechnikov_weights(x_nb, x0, g_nb, g0, level, *, radius_s, radius_g, growth):
+    """Weights of a distance-weighted local fit (``neighbours.fit_weights="epanechnikov"``):
+    ``(1 - d_s^2 / R_s^2)(1 - d_g^2 / R_g^2)`` per neighbour, ``[..., k]``.
+
+    ``x_nb [..., k, d]`` / ``x0 [..., d]``: the neighbours and the centre in the search space
+    (the states or their features); ``g_nb`` / ``g0``: goals as in :func:`neighbour_offsets`
+    (angles wrapped) or ``None`` (no goal factor); ``level [...]``: the neighbourhood's growth
+    level, so ``R_s = radius_s growth^level`` and ``R_g = radius_g growth^level`` are the
+    radii its members were found in (a level below 0, no neighbourhood, counts as 0).
+    Members lie strictly inside both balls, so their weights are in ``(0, 1]`` up to
+    float32 rounding at the rim (clamped at 0).
+    """
+    x_nb, x0 = jnp.asarray(x_nb, jnp.float32), jnp.asarray(x0, jnp.float32)
+    scale = jnp.float32(growth) ** jnp.maximum(jnp.asarray(level), 0).astype(jnp.float32)
+    d_s2 = jnp.sum((x_nb - x0[..., None, :]) ** 2, axis=-1)
+    w = jnp.maximum(1.0 - d_s2 / (jnp.float32(radius_s) * scale)[..., None] ** 2, 0.0)
+    if g_nb is not None:
+        d = goal_offsets(g_nb, g0, angle=jnp.ndim(g_nb) == x_nb.ndim - 1)
+        d_g2 = jnp.sum(d * d, axis=-1)
+        w = w * jnp.maximum(1.0 - d_g2 / (jnp.float32(radius_g) * scale)[..., None] ** 2, 0.0)
+    return w
 
 
 def precompute_projection(actions, weights=None):

@@ -9,11 +9,23 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from lazyq_jax.local_model import fit_local_linear, greedy_action, neighbour_offsets
+from lazyq_jax.local_model import epanechnikov_weights, fit_local_linear, greedy_action, neighbour_offsets
 from lazyq_jax.neighbours import GridIndex, build_index, is_grid_space, query_neighbours
 from lazyq_jax.neighbours.query import PolicyIndex, build_policy_index, query_policy, stack_policy_indices
 from lazyq_jax.targets import bootstrap_table
 from lazyq_jax.types import Transitions
+
+
+@struct.dataclass
+class FitKernel:
+    """What distance-weighted local fits (``neighbours.fit_weights="epanechnikov"``) read: the
+    dataset's points in the search space ``x [N, d]`` and goals, and the radii."""
+
+    x: jax.Array
+    goals: jax.Array | None
+    radius_s: float = struct.field(pytree_node=False)
+    radius_g: float = struct.field(pytree_node=False)
+    growth: float = struct.field(pytree_node=False)
 
 
 @struct.dataclass
@@ -29,6 +41,7 @@ class LazyPolicy:
     features: Callable | None = struct.field(pytree_node=False, default=None)  # phi(s): the search space
     states: jax.Array | None = None  # [N, d_s] the dataset's states, for state-offset local models
     goals: jax.Array | None = None  # the dataset's goals, for goal-offset local models
+    kernel: FitKernel | None = None  # distance-weighted local fits (None: the paper's least squares)
 
 
 def policy_index(data_s, data_g, *, k: int, radius_s: float, radius_g: float, growth: float,
@@ -81,7 +94,8 @@ def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):
 
     For each query: its neighbourhood in the dataset (distances between ``policy.features``
     of the states, if the policy has a feature map), the local fit
-    ``y_j ~ alpha + beta.a_j`` (Eq. 5-6), and the maximiser of ``beta . a`` over the
+    ``y_j ~ alpha + beta.a_j`` (Eq. 5-6; weighted by distance with a ``policy.kernel``), and
+    the maximiser of ``beta . a`` over the
     action set (:func:`lazyq_jax.local_model.greedy_action`).  Pure and jittable (use
     it inside ``lax.scan`` rollouts).  A query with no neighbourhood within
     ``max_level`` growths (far outside the data) gets the zero action and ``found = False``.
@@ -97,7 +111,13 @@ def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):
     offsets = None if policy.states is None else neighbour_offsets(
         policy.states[rows], s, None if policy.goals is None else policy.goals[rows],
         None if policy.goals is None else g)
-    _, beta = fit_local_linear(policy.actions[rows], policy.values[rows], offsets=offsets)
+    weights = None
+    if policy.kernel is not None:
+        kn = policy.kernel
+        weights = epanechnikov_weights(kn.x[rows], x, None if kn.goals is None else kn.goals[rows],
+                                       None if kn.goals is None else g, nb.level,
+                                       radius_s=kn.radius_s, radius_g=kn.radius_g, growth=kn.growth)
+    _, beta = fit_local_linear(policy.actions[rows], policy.values[rows], weights, offsets=offsets)
     action = greedy_action(beta, policy.action_length, policy.action_set)
     found = nb.level >= 0
     return jnp.where(found[:, None], action, 0.0), beta, found

@@ -146,32 +146,40 @@ def bootstrap_table(v: ValueFn, data: Transitions, gamma, batch_size=65536,
 
 def local_fits(v: ValueFn, data: Transitions, neighbours_idx, *, gamma, projection=None,
                batch_size=65536, mesh: Mesh | None = None, state_offsets: bool = False,
-               goal_offsets: bool = False):
+               goal_offsets: bool = False, weights=None):
     """``(alpha [N], beta [N, n_a], y_nb [N, k])``: Eq. (5)-(6) for every transition's
     neighbourhood with ``y = r + gamma (1 - done) v(s', g)``; ``y_nb = y[neighbours_idx]``.
     ``state_offsets``: fit ``alpha + beta . a + gamma' . (s_j - s_i)`` instead
     (:func:`lazyq_jax.local_model.fit_local_linear`'s ``offsets``); ``goal_offsets`` (with
     ``state_offsets``): also ``g_j - g_i`` (:func:`lazyq_jax.local_model.neighbour_offsets`).
+    ``weights [N, k]``: weighted least squares (e.g.
+    :func:`lazyq_jax.local_model.epanechnikov_weights`); not with a ``projection``.
 
     With a ``mesh`` the value table is computed split over the devices and then
     replicated, and the fits are split by rows (the outputs are row-sharded).
     """
     idx = jnp.asarray(neighbours_idx)
+    if weights is not None and projection is not None:
+        raise ValueError("local_fits takes weights or a projection (precomputed without weights), not both")
     n, pad = idx.shape[0], -idx.shape[0] % mesh_size(mesh)
     rows = jnp.arange(n + pad) % n  # padding repeats row 0 (dropped below)
     if pad:  # rows split evenly over the devices
         idx = jnp.concatenate([idx, jnp.broadcast_to(idx[:1], (pad, idx.shape[1]))])
         if projection is not None:
             projection = jnp.concatenate([projection, jnp.repeat(projection[:1], pad, 0)])
+        if weights is not None:
+            weights = jnp.concatenate([weights, jnp.broadcast_to(weights[:1], (pad, idx.shape[1]))])
     idx = constrain(idx, sharded(mesh))
+    if weights is not None:
+        weights = constrain(jnp.asarray(weights, jnp.float32), sharded(mesh))
     y_nb = bootstrap_table(v, data, gamma, batch_size, mesh)[idx]
     if state_offsets:
         g = data.g if goal_offsets else None
         offsets = neighbour_offsets(data.s[idx], data.s[rows], None if g is None else g[idx],
                                     None if g is None else g[rows])
-        alpha, beta = fit_local_linear(data.a[idx], y_nb, offsets=offsets)
+        alpha, beta = fit_local_linear(data.a[idx], y_nb, weights, offsets=offsets)
     elif projection is None:
-        alpha, beta = fit_local_linear(data.a[idx], y_nb)
+        alpha, beta = fit_local_linear(data.a[idx], y_nb, weights)
     else:
         alpha, beta = apply_projection(projection, y_nb)
     out = alpha[:n], beta[:n], y_nb[:n]

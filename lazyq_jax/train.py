@@ -3,13 +3,14 @@
 ``make_train(config, action_length)`` returns a :class:`Trainer` of pure functions:
 
 * ``init(key, data) -> TrainState`` (sized from ``data``)
-* ``run_cycle(state, data, idx, n_valid=None) -> (state, metrics)``: one cycle: targets from
+* ``run_cycle(state, data, idx, n_valid=None, weights=None) -> (state, metrics)``: one cycle
+  (``weights [N, k]``: distance-weighted local fits, ``neighbours.fit_weights``): targets from
   the parameters frozen at the start of the cycle (the DQN target network, Eq. 11-12),
   then ``epochs`` epochs of Adam on ``mean((V - Y)^2)`` (Eq. 10) in ``lax.scan``.
   With ``double_dqn`` the targets are Eq. (13)-(14) and are refreshed every epoch:
   the action comes from the fit to the *online* network's values, its value from
   the frozen network's fit.
-* ``train(key, data, idx, n_valid=None) -> (state, metrics)``: all cycles in one
+* ``train(key, data, idx, n_valid=None, weights=None) -> (state, metrics)``: all cycles in one
   ``lax.scan``.  It keeps ``idx`` fixed; ``resample_neighbours`` is honoured by the
   runner, which draws fresh neighbourhoods between cycles.
 
@@ -193,10 +194,10 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
         variables = {"params": state.params, "batch_stats": state.batch_stats}
         return lambda s, g: network.apply(variables, s, g, train=False)
 
-    def fits(state: TrainState, data: Transitions, idx: jax.Array):
+    def fits(state: TrainState, data: Transitions, idx: jax.Array, weights):
         return local_fits(value_fn(state), data, idx, gamma=config.gamma,
                           batch_size=config.target_batch_size, mesh=mesh, state_offsets=state_offsets,
-                          goal_offsets=goal_offsets)
+                          goal_offsets=goal_offsets, weights=weights)
 
     def loss_fn(params, batch_stats, s, g, y):
         v, updates = train_network.apply({"params": params, "batch_stats": batch_stats}, s, g,
@@ -250,13 +251,13 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
                              check_vma=False)(state, data, y, key, n_valid)
 
     def run_cycle(state: TrainState, data: Transitions, idx: jax.Array,
-                  n_valid: jax.Array | None = None):
+                  n_valid: jax.Array | None = None, weights: jax.Array | None = None):
         check_state(state, data, "run_cycle")
         n_valid = valid_rows(data, n_valid)
         valid = jnp.arange(data.r.shape[0]) < n_valid
         key, k_epochs = jax.random.split(state.key)
         # The target network: the parameters frozen at the start of the cycle (Eq. 11-12).
-        alpha, beta, y_nb = fits(state, data, idx)
+        alpha, beta, y_nb = fits(state, data, idx, weights)
         actions = data.a[idx] if config.target_max == "data" else None
         dqn = lazy_target(alpha, beta, y_nb, action_length, config.clip, action_set, actions)
 
@@ -264,7 +265,7 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
             e, k = xs
             y, active = dqn
             if config.double_dqn:  # Eq. (13)-(14): the online network picks the action
-                _, beta_online, _ = fits(state, data, idx)
+                _, beta_online, _ = fits(state, data, idx, weights)
                 y, active = double_dqn_target(alpha, beta, beta_online, y_nb, action_length,
                                               config.clip, action_set)
             state, loss = epoch(state, data, y, k, n_valid)
@@ -291,9 +292,10 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
             metrics["probe_values"] = value_fn(state)(*probes)
         return state, metrics
 
-    def train(key: jax.Array, data: Transitions, idx: jax.Array, n_valid: jax.Array | None = None):
+    def train(key: jax.Array, data: Transitions, idx: jax.Array, n_valid: jax.Array | None = None,
+              weights: jax.Array | None = None):
         def cycle(state, _):
-            return run_cycle(state, data, idx, n_valid)
+            return run_cycle(state, data, idx, n_valid, weights)
 
         return jax.lax.scan(cycle, init(key, data), None, length=config.cycles)
 

@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from functools import partial
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -26,9 +28,10 @@ from jax.sharding import Mesh
 from lazyq_jax.agents.base import Agent, Problem
 from lazyq_jax.config import NeighbourConfig, TrainConfig
 from lazyq_jax.keys import purpose_key
+from lazyq_jax.local_model import epanechnikov_weights
 from lazyq_jax.neighbours import GridIndex, build_index, find_neighbours, is_grid_space, search_all
 from lazyq_jax.parallel import over_seeds
-from lazyq_jax.policy import LazyPolicy, lazy_policy, policy_index, stack_indices
+from lazyq_jax.policy import FitKernel, LazyPolicy, lazy_policy, policy_index, stack_indices
 from lazyq_jax.targets import bootstrap_table
 from lazyq_jax.train import make_train
 from lazyq_jax.types import Transitions
@@ -45,10 +48,12 @@ class LazyConfig:
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass
 class Neighbourhoods:
-    """``idx [N, k]`` of every transition's neighbourhood and its growth ``level [N]``."""
+    """``idx [N, k]`` of every transition's neighbourhood, its growth ``level [N]`` and, with
+    ``neighbours.fit_weights="epanechnikov"``, the local fits' ``weights [N, k]``."""
 
     idx: jax.Array
     level: jax.Array
+    weights: jax.Array | None = None
 
 
 class LazyAgent(Agent):
@@ -104,13 +109,23 @@ class LazyAgent(Agent):
                                 radius_s=nc.radius_s, radius_g=nc.radius_g, growth=nc.growth,
                                 max_level=0, capacity=data.size, bounds=self.problem.search_bounds)
             nb = search_all(index, key, x, data.g, mesh=self.mesh, n_queries=n)
-            return Neighbourhoods(nb.idx, nb.level)
+            return Neighbourhoods(nb.idx, nb.level, self.fit_weights(x, data.g, nb.idx, nb.level))
         g = None if data.g is None else data.g[:n]
         nb = find_neighbours(key, x[:n], g, x[:n], g, k=nc.k, radius_s=nc.radius_s,
                              radius_g=nc.radius_g, growth=nc.growth, mesh=self.mesh)
         pad = data.size - n
-        return Neighbourhoods(jnp.concatenate([nb.idx, jnp.zeros((pad, nc.k), jnp.int32)]),
-                              jnp.concatenate([nb.level, jnp.zeros((pad,), jnp.int32)]))
+        idx = jnp.concatenate([nb.idx, jnp.zeros((pad, nc.k), jnp.int32)])
+        level = jnp.concatenate([nb.level, jnp.zeros((pad,), jnp.int32)])
+        return Neighbourhoods(idx, level, self.fit_weights(x, data.g, idx, level))
+
+    def fit_weights(self, x, g, idx, level):
+        """The local fits' weights ``[N, k]`` (``neighbours.fit_weights``; ``None`` when
+        uniform) from the search-space points ``x`` and goals ``g`` of every row."""
+        nc = self.config.neighbours
+        if nc.fit_weights == "uniform":
+            return None
+        return _weights(jnp.asarray(x, jnp.float32), None if g is None else jnp.asarray(g), idx, level,
+                        radius_s=nc.radius_s, radius_g=nc.radius_g, growth=nc.growth)
 
     def search_space(self, s):
         """Where the state distance of the neighbourhoods is measured: ``problem.features(s)``
@@ -119,7 +134,7 @@ class LazyAgent(Agent):
         return s if phi is None else np.asarray(jax.jit(phi)(jnp.asarray(s, jnp.float32)))
 
     def run_block(self, state, data: Transitions, aux: Neighbourhoods, n_valid=None):
-        state, metrics = self.trainer.run_cycle(state, data, aux.idx, n_valid)
+        state, metrics = self.trainer.run_cycle(state, data, aux.idx, n_valid, aux.weights)
         n = data.r.shape[0] if n_valid is None else n_valid
         valid = (jnp.arange(data.r.shape[0]) < n).astype(jnp.float32)
         count = jnp.maximum(jnp.sum(valid), 1.0)
@@ -133,8 +148,12 @@ class LazyAgent(Agent):
         if aux is None:
             raise ValueError("lazy Q's train needs the neighbourhoods: train(key, data, aux=idx) "
                              "with idx = find_neighbours(...).idx")
-        idx = aux.idx if isinstance(aux, Neighbourhoods) else aux
-        return self.trainer.train(key, data, idx, n_valid)
+        if isinstance(aux, Neighbourhoods):
+            return self.trainer.train(key, data, aux.idx, n_valid, aux.weights)
+        if self.config.neighbours.fit_weights != "uniform":
+            raise ValueError("neighbours.fit_weights needs the neighbourhoods' levels: pass "
+                             "aux=agent.prepare(seed, data, n_valid, 0)")
+        return self.trainer.train(key, data, aux, n_valid)
 
     def value_fn(self, state):
         """``V(s, g)`` of a trained (unstacked) state, in inference mode."""
@@ -166,11 +185,21 @@ class LazyAgent(Agent):
         model = self.config.neighbours.local_model
         states = data.s if model != "action" else None
         goals = data.g if model == "action+state+goal" else None
+        kernel = None
+        if nc.fit_weights != "uniform":
+            x = jnp.stack([jnp.asarray(self.search_space(data.s[i]), jnp.float32) for i in range(n_seeds)])
+            kernel = FitKernel(x, data.g, nc.radius_s, nc.radius_g, nc.growth)
         return LazyPolicy(index, data.a, values, length, self.problem.action_set, self.problem.features,
-                          states, goals)
+                          states, goals, kernel)
 
     def act(self, policy: LazyPolicy):
         return lambda key, s, g: lazy_policy(policy, key, s, g)[0]
+
+
+@partial(jax.jit, static_argnames=("radius_s", "radius_g", "growth"))
+def _weights(x, g, idx, level, *, radius_s, radius_g, growth):
+    return epanechnikov_weights(x[idx], x, None if g is None else g[idx], g, level,
+                                radius_s=radius_s, radius_g=radius_g, growth=growth)
 
 
 def _pow2(n: int) -> int:

@@ -133,6 +133,21 @@ def config_diff(a: Any, b: Any, prefix: str = "") -> list[str]:
     return [] if a == b else [prefix.rstrip(".")]
 
 
+def _added_at_default(config: Any, stored: dict, dotted: str) -> bool:
+    """Whether ``dotted`` is a field the stored config does not have (it was added to lazyq-jax
+    after the run was made) and ``config`` holds at its default: the run was made with what
+    the default does."""
+    *path, name = dotted.split(".")
+    for part in path:
+        if not isinstance(stored, dict) or part not in stored or not dataclasses.is_dataclass(config):
+            return False
+        stored, config = stored[part], getattr(config, part, None)
+    if not isinstance(stored, dict) or name in stored or not dataclasses.is_dataclass(config):
+        return False
+    field = {f.name: f for f in dataclasses.fields(config)}.get(name)
+    return field is not None and field.default is not dataclasses.MISSING and getattr(config, name) == field.default
+
+
 # A resume may change these: the evaluation, the devices, and more training cycles.
 _MAY_CHANGE = ("eval", "parallel", "train.cycles")
 
@@ -174,7 +189,8 @@ def open_run(run_dir: Path, config: Config, seeds: Sequence[int], *, resume: boo
                                   f"{list(seeds)}; resume it with those, or use another --run-dir")
             old = stored.get("config", {})
             differ = [f for f in config_diff(old, record["config"])
-                      if not any(f == m or f.startswith(m + ".") for m in _MAY_CHANGE)]
+                      if not any(f == m or f.startswith(m + ".") for m in _MAY_CHANGE)
+                      and not _added_at_default(config, old, f)]
             if differ:
                 raise RunDirError(f"{run_dir} holds a run with other settings ({', '.join(differ)}); "
                                   "resume it with its own settings, or use --overwrite")
@@ -188,15 +204,28 @@ def open_run(run_dir: Path, config: Config, seeds: Sequence[int], *, resume: boo
     barrier("open run: recorded")
 
 
-def open_method(method_dir: Path, record: dict) -> None:
-    """Refuse a method directory trained with other settings; record this method's."""
+def _lookup(tree: Any, dotted: str) -> tuple[bool, Any]:
+    for part in dotted.split("."):
+        if not isinstance(tree, dict) or part not in tree:
+            return False, None
+        tree = tree[part]
+    return True, tree
+
+
+def open_method(method_dir: Path, record: dict, defaults: dict | None = None) -> None:
+    """Refuse a method directory trained with other settings; record this method's.
+
+    ``defaults``: the record's fields at their defaults; a field the stored record lacks
+    (added to lazyq-jax after it was trained) is accepted at its default."""
     path = method_dir / "method.json"
     record = as_json(record)
+    defaults = as_json(defaults or {})
     barrier("open method: every process reads it as it was")
     if path.exists():
         stored = json.loads(path.read_text())
-        if stored != record:
-            differ = config_diff(stored, record)
+        differ = [f for f in config_diff(stored, record)
+                  if _lookup(stored, f)[0] or _lookup(defaults, f) != _lookup(record, f)]
+        if differ:
             raise RunDirError(f"{method_dir} holds {stored.get('method')} trained with other settings "
                               f"({', '.join(differ)}); pass --overwrite or pick another --run-dir")
     barrier("open method: checked")

@@ -36,7 +36,7 @@ from lazyq_jax import agents, tasks
 from lazyq_jax.agents import Agent, FixedPolicy, LazyConfig, Problem
 from lazyq_jax.agents.base import stack_trees
 from lazyq_jax.checkpoint import CheckpointError, latest_step, load_latest_intact, save_checkpoint
-from lazyq_jax.config import Config, ConfigError, override, to_dict
+from lazyq_jax.config import Config, ConfigError, NeighbourConfig, override, to_dict
 from lazyq_jax.data import DatasetError
 from lazyq_jax.keys import purpose_key
 from lazyq_jax.parallel import is_main_process, make_mesh, over_seeds, put, replicated
@@ -73,6 +73,11 @@ def lazy_steps(config: Config, sd: SeedData) -> int:
     """Lazy Q's gradient steps on the smallest of the seeds' datasets: the budget unit."""
     tc = config.train
     return tc.cycles * tc.epochs * (int(np.min(sd.n_valid)) // tc.batch_size)
+
+
+def _record_defaults(record: dict) -> dict:
+    """The defaults of a method record's sections (see :func:`open_method`)."""
+    return {"neighbours": to_dict(NeighbourConfig())} if record.get("method") == "lazy" else {}
 
 
 def build_agent(ctx: Context, spec: MethodSpec, sd: SeedData) -> tuple[Agent, dict]:
@@ -385,7 +390,7 @@ def _run_method(ctx: Context, spec: MethodSpec, sd: SeedData, *, evaluate: bool,
     timing_path = method_dir / "timings.json"
     record["spec"] = spec.text
     if train:
-        open_method(method_dir, record)
+        open_method(method_dir, record, _record_defaults(record))
         states, sd, spent = train_method(ctx, agent, spec, method_dir, sd)
     else:
         states, sd, spent = load_states(ctx, agent, spec, method_dir, sd), sd, {}
