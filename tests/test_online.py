@@ -4,6 +4,7 @@ program: the rounds, their data, their resume, the reload."""
 import shutil
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -12,13 +13,16 @@ from lazyq_jax.config import ConfigError, override
 from lazyq_jax.data import episodes_to_transitions, load_dataset
 from lazyq_jax.run import evaluate_run, load_run, run
 from lazyq_jax.run.rundir import read_jsonl
-from lazyq_jax.run.sources import OnlineRounds
+from lazyq_jax.run.sources import OnlineRounds, SeedData
+from lazyq_jax.types import Transitions, pad_transitions
 
 # The smoke preset (400 random starts, about 790 moves) and two online rounds of at most
-# 150 moves each, two cycles per round (so a resume can start inside a round).
+# 240 moves each (48 episodes of 5 moves), two cycles per round (so a resume can start inside
+# a round).  The budget of 1700 moves pads round 0 to half of it (850 moves' rows) and round 1
+# outgrows that: the arrays double once.
 TINY = override(tasks.preset("push", "smoke"), [
     "collect.n_starts=400", "train.cycles=2", "online.rounds=2", "online.episodes=48",
-    "online.max_steps=5", "online.max_moves=1100", "online.cycles=2", "online.eval_episodes=2",
+    "online.max_steps=5", "online.max_moves=1700", "online.cycles=2", "online.eval_episodes=2",
     "eval.n_directions=8", "eval.episodes_per_direction=2", "eval.long_rollouts=2",
     "eval.long_max_steps=20"])
 SEEDS = [0, 1]
@@ -58,8 +62,10 @@ def test_rounds_grow_the_data_within_the_budget_and_compile_once(online_run):
     # The seeds' data grew differently (each with its own policy).
     assert rounds[-1]["seeds"][0]["moves_total"] != rounds[-1]["seeds"][1]["moves_total"] or not tree_equal(
         sd.seed_data(0), sd.seed_data(1))
-    # The rollout and the training block each compiled once for the whole run.
-    assert rounds[-1]["compiled"] == {"run_block": 1, "explore": 1}
+    # The arrays doubled once (round 1 outgrew half the budget): the rollout and the training
+    # block each compiled once per size.
+    assert rounds[0]["seeds"][0]["moves_total"] <= o.max_moves // 2 < rounds[1]["seeds"][0]["moves_total"]
+    assert rounds[-1]["compiled"] == {"run_block": 2, "explore": 2}
 
 
 def test_collected_moves_are_valid_relabelled_transitions(online_run):
@@ -136,7 +142,7 @@ def test_the_rounds_budget_counts_in_moves():
     assert rounds.total_blocks() == 6 and [rounds.round_end(r) for r in range(3)] == [2, 4, 6]
     assert [rounds.round_starting(b) for b in range(7)] == [None, None, 1, None, 2, None, None]
     assert [rounds.rounds_with_data(b) for b in range(7)] == [0, 0, 0, 1, 1, 2, 2]
-    assert rounds.quota(500) == 300
+    assert rounds.quota(500) == 600
 
 
 @pytest.mark.parametrize("assignment, message", [
@@ -154,3 +160,36 @@ def test_online_runs_refuse_offline_baselines_and_small_budgets(tmp_path):
         run(TINY, tmp_path / "a", methods=["lazy", "bc"])
     with pytest.raises(ConfigError, match="online.max_moves=500 leaves no moves"):
         run(override(TINY, ["online.max_moves=500"]), tmp_path / "b", progress=False)
+
+
+def test_padding_starts_small_and_doubles_as_the_rounds_grow(tmp_path):
+    """The online arrays: the run's capacity halved while the half holds the rows and a
+    batch; a round that outgrows them doubles them (valid rows kept, the rest zero)."""
+    config = override(TINY, ["online.max_moves=4000", "train.batch_size=64"])
+    online = OnlineRounds(tasks.get("push"), config, tmp_path)
+    cap, per_move = online.capacity, online.per_move
+    assert cap == 4000 * per_move
+    for rows in (1, 64, cap // 8, cap // 8 + 1, cap // 4 + 1, cap):
+        size = online.size_for(rows)
+        # the smallest capacity / 2^j holding max(rows, batch)
+        expect = min(cap >> j for j in range(20) if (cap >> j) << j == cap and cap >> j >= max(rows, 64))
+        assert size == expect and size >= rows
+    rng = np.random.default_rng(0)
+
+    def rows(moves):
+        n = moves * per_move
+        f = lambda *shape: jnp.asarray(rng.normal(size=(n, *shape)), jnp.float32)
+        return Transitions(s=f(2), a=f(2), s_next=f(2), r=f(), g=f(), done=jnp.asarray(rng.random(n) < 0.1))
+
+    base = [rows(300), rows(250)]
+    stacked = jax.tree.map(lambda *x: jnp.stack(x), base[0], pad_transitions(base[1], base[0].size))
+    sd = SeedData((0, 1), stacked, np.array([300 * per_move, 250 * per_move], np.int32), [{}, {}])
+    sd = online.padded(sd)
+    assert sd.capacity == online.size_for(300 * per_move) == cap // 8
+    extra = [rows(400), rows(100)]
+    grown = online.append(sd, extra)
+    assert grown.capacity == cap // 4 and list(grown.n_valid) == [700 * per_move, 350 * per_move]
+    for i in range(2):
+        whole = jax.tree.map(lambda a, b: np.concatenate([a, b]), base[i], extra[i])
+        assert tree_equal(grown.seed_data(i), whole)
+        assert not np.asarray(grown.stacked.s[i, int(grown.n_valid[i]):]).any()

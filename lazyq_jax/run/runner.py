@@ -238,7 +238,7 @@ _EXPLORERS: dict = {}
 
 
 def _explorer(ctx: Context, agent: Agent):
-    """The task's online round over the stacked policies, compiled once per run."""
+    """The task's online round over the stacked policies (compiled once per data shape)."""
     key = (id(agent), ctx.task.name, ctx.config, len(ctx.seeds))
     if key not in _EXPLORERS:
         _EXPLORERS.clear()
@@ -251,7 +251,7 @@ def _round_end(ctx: Context, agent: Agent, online: OnlineRounds, states, sd: See
                method_dir: Path, block: int, timing: dict, run_block) -> bool:
     """After the last block of a round: the task's quick evaluation of every seed, recorded
     with the round's data in ``rounds.jsonl`` (once per round), and how often the round's
-    programs compiled so far (once each: the shapes never change)."""
+    programs compiled so far (once per shape of the padded data: see :meth:`OnlineRounds.size_for`)."""
     path = method_dir / "rounds.jsonl"
     ends = {online.round_end(r): r for r in range(ctx.config.online.rounds + 1)}
     if block not in ends or any(rec["round"] == ends[block] for rec in read_jsonl(path)):

@@ -3,8 +3,10 @@ that grow it with the agent's own episodes.
 
 Both give the runner the seeds' datasets padded to one length and stacked
 (:class:`SeedData`), so that every phase is one program over all seeds.  The online
-source pads to the largest size the rounds may reach from the start, so that the
-shapes, hence the compiled programs, never change during a run.
+source pads to the capacity of the whole run halved as often as the data allow
+(:meth:`OnlineRounds.size_for`), and doubles it when a round outgrows it: a run compiles
+its programs for at most a few shapes, and the early rounds do not pay for the rows the
+later ones will add.
 """
 
 from __future__ import annotations
@@ -111,8 +113,13 @@ class OnlineRounds:
     seed); every round ends with the task's quick evaluation, recorded in
     ``<method>/rounds.jsonl``.
 
-    Arrays have a fixed capacity (``online.max_moves`` moves' rows) from round 0 on, and
-    the neighbour grids fixed bounds (the task's), so nothing recompiles between rounds.
+    Arrays are padded to :meth:`size_for` the valid rows: the capacity of the whole run
+    (``online.max_moves`` moves' rows) halved as often as they allow, so the shapes, hence
+    the compiled programs, change at most ``log2`` times in a run (when a round's data cross
+    a power of two of the capacity), and the neighbour grids have fixed bounds (the
+    task's).  Training does not depend on the padding (the shuffle draws the same order
+    for the valid rows, padded batches are skipped), only its cost does: under ``vmap`` a
+    padded batch is computed and dropped, and the targets are fitted for every row.
     """
 
     def __init__(self, task: Task, config: Config, run_dir: Path):
@@ -147,18 +154,28 @@ class OnlineRounds:
         o = self.config.online
         return max(0, (o.max_moves - round0_moves) // o.rounds)
 
+    def size_for(self, rows: int) -> int:
+        """The padded length for ``rows`` valid rows: the run's capacity halved while the half
+        still holds ``rows`` and a training batch."""
+        size, floor = self.capacity, max(int(rows), self.config.train.batch_size)
+        while size % 2 == 0 and size // 2 >= floor:
+            size //= 2
+        return size
+
+    def _pad(self, sd: SeedData, size: int) -> SeedData:
+        stacked = jax.tree.map(lambda x: jnp.concatenate(
+            [x, jnp.zeros((x.shape[0], size - x.shape[1], *x.shape[2:]), x.dtype)], 1), sd.stacked)
+        return dataclasses.replace(sd, stacked=stacked)
+
     def padded(self, sd: SeedData) -> SeedData:
-        """Round 0's data padded to the capacity of the whole run (refused if the budget
-        leaves no moves for the rounds)."""
+        """Round 0's data padded to :meth:`size_for` its rows (refused if the budget leaves no
+        moves for the rounds)."""
         moves = int(np.max(sd.n_valid)) // self.per_move
         if moves >= self.config.online.max_moves:
             raise ConfigError(f"online.max_moves={self.config.online.max_moves} leaves no moves for the "
                               f"online rounds: round 0 already holds {moves}; raise online.max_moves "
                               "or collect less data")
-        stacked = jax.tree.map(lambda x: jnp.concatenate(
-            [x, jnp.zeros((x.shape[0], self.capacity - x.shape[1], *x.shape[2:]), x.dtype)], 1),
-            sd.stacked)
-        return dataclasses.replace(sd, stacked=stacked)
+        return self._pad(sd, self.size_for(int(np.max(sd.n_valid))))
 
     def path(self, seed: int, r: int) -> Path:
         return self.run_dir / "data" / str(seed) / f"round_{r}.npz"
@@ -176,6 +193,11 @@ class OnlineRounds:
         return sd
 
     def append(self, sd: SeedData, parts: Sequence[Transitions]) -> SeedData:
+        """``parts[i]`` appended to seed ``i``'s valid rows, the padding grown to
+        :meth:`size_for` the new rows where they outgrow it."""
+        end = max(int(n) + p.size for n, p in zip(sd.n_valid, parts))
+        if end > sd.capacity:
+            sd = self._pad(sd, self.size_for(end))
         stacked, n_valid = sd.stacked, sd.n_valid.copy()
         for i, part in enumerate(parts):
             end = int(n_valid[i]) + part.size
