@@ -165,10 +165,16 @@ class LazyAgent(Agent):
         (stacked over the seeds: one layout and the largest capacities), and the
         bootstrapped values ``r + gamma (1 - done) V(s', g)`` of its trained V."""
         nc, n_seeds = self.config.neighbours, int(np.shape(n_valid)[0])
-        indices = [policy_index(self.search_space(data.s[i]), None if data.g is None else np.asarray(data.g[i]),
+        xs = [self.search_space(data.s[i]) for i in range(n_seeds)]
+        bounds = self.problem.search_bounds
+        if bounds is None and is_grid_space(xs[0], None if data.g is None else data.g[0]):
+            # The seeds' grids are stacked into one pytree: they need one set of bounds (the
+            # task gives none, e.g. for a 2-D feature map): those of every seed's points.
+            pts = np.concatenate([np.asarray(x)[: int(n)] for x, n in zip(xs, n_valid)])
+            bounds = (*pts.min(0).tolist(), *pts.max(0).tolist())
+        indices = [policy_index(xs[i], None if data.g is None else np.asarray(data.g[i]),
                                 k=nc.k, radius_s=nc.radius_s, radius_g=nc.radius_g, growth=nc.growth,
-                                max_level=nc.max_level, n_valid=int(n_valid[i]),
-                                bounds=self.problem.search_bounds)
+                                max_level=nc.max_level, n_valid=int(n_valid[i]), bounds=bounds)
                    for i in range(n_seeds)]
         index = stack_indices(indices)
         if isinstance(index, GridIndex):
@@ -187,7 +193,7 @@ class LazyAgent(Agent):
         goals = data.g if model == "action+state+goal" else None
         kernel = None
         if nc.fit_weights != "uniform":
-            x = jnp.stack([jnp.asarray(self.search_space(data.s[i]), jnp.float32) for i in range(n_seeds)])
+            x = jnp.stack([jnp.asarray(x, jnp.float32) for x in xs])
             kernel = FitKernel(x, data.g, nc.radius_s, nc.radius_g, nc.growth)
         return LazyPolicy(index, data.a, values, length, self.problem.action_set, self.problem.features,
                           states, goals, kernel)
