@@ -133,19 +133,32 @@ def config_diff(a: Any, b: Any, prefix: str = "") -> list[str]:
     return [] if a == b else [prefix.rstrip(".")]
 
 
-def _added_at_default(config: Any, stored: dict, dotted: str) -> bool:
-    """Whether ``dotted`` is a field the stored config does not have (it was added to lazyq-jax
-    after the run was made) and ``config`` holds at its default: the run was made with what
-    the default does."""
-    *path, name = dotted.split(".")
-    for part in path:
-        if not isinstance(stored, dict) or part not in stored or not dataclasses.is_dataclass(config):
-            return False
-        stored, config = stored[part], getattr(config, part, None)
-    if not isinstance(stored, dict) or name in stored or not dataclasses.is_dataclass(config):
-        return False
-    field = {f.name: f for f in dataclasses.fields(config)}.get(name)
-    return field is not None and field.default is not dataclasses.MISSING and getattr(config, name) == field.default
+def _lookup(tree: Any, dotted: str) -> tuple[bool, Any]:
+    for part in dotted.split("."):
+        if not isinstance(tree, dict) or part not in tree:
+            return False, None
+        tree = tree[part]
+    return True, tree
+
+
+def _added_at_default(stored: dict, record: dict, defaults: dict, dotted: str) -> bool:
+    """Whether ``dotted`` is a field the stored record lacks (added to lazyq-jax after it was
+    made) and ``record`` holds at its default (``defaults``): it was made with what the
+    default does."""
+    return not _lookup(stored, dotted)[0] and _lookup(defaults, dotted) == _lookup(record, dotted)
+
+
+def field_defaults(config: Any) -> dict:
+    """The defaults of a (nested) config dataclass's fields, as JSON (sections by their
+    current value's class)."""
+    out = {}
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if dataclasses.is_dataclass(value):
+            out[f.name] = field_defaults(value)
+        elif f.default is not dataclasses.MISSING:
+            out[f.name] = f.default
+    return as_json(out)
 
 
 # A resume may change these: the evaluation, the devices, and more training cycles.
@@ -190,7 +203,7 @@ def open_run(run_dir: Path, config: Config, seeds: Sequence[int], *, resume: boo
             old = stored.get("config", {})
             differ = [f for f in config_diff(old, record["config"])
                       if not any(f == m or f.startswith(m + ".") for m in _MAY_CHANGE)
-                      and not _added_at_default(config, old, f)]
+                      and not _added_at_default(old, record["config"], field_defaults(config), f)]
             if differ:
                 raise RunDirError(f"{run_dir} holds a run with other settings ({', '.join(differ)}); "
                                   "resume it with its own settings, or use --overwrite")
@@ -202,14 +215,6 @@ def open_run(run_dir: Path, config: Config, seeds: Sequence[int], *, resume: boo
         run_dir.mkdir(parents=True, exist_ok=True)
     write_json(path, record)
     barrier("open run: recorded")
-
-
-def _lookup(tree: Any, dotted: str) -> tuple[bool, Any]:
-    for part in dotted.split("."):
-        if not isinstance(tree, dict) or part not in tree:
-            return False, None
-        tree = tree[part]
-    return True, tree
 
 
 def open_method(method_dir: Path, record: dict, defaults: dict | None = None) -> None:
@@ -224,7 +229,7 @@ def open_method(method_dir: Path, record: dict, defaults: dict | None = None) ->
     if path.exists():
         stored = json.loads(path.read_text())
         differ = [f for f in config_diff(stored, record)
-                  if _lookup(stored, f)[0] or _lookup(defaults, f) != _lookup(record, f)]
+                  if not _added_at_default(stored, record, defaults, f)]
         if differ:
             raise RunDirError(f"{method_dir} holds {stored.get('method')} trained with other settings "
                               f"({', '.join(differ)}); pass --overwrite or pick another --run-dir")

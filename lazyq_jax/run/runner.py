@@ -43,7 +43,7 @@ from lazyq_jax.parallel import is_main_process, make_mesh, over_seeds, put, repl
 from lazyq_jax.plots import online_curve
 from lazyq_jax.run.results import earlier_methods, write_results
 from lazyq_jax.run.rundir import (MethodSpec, RunDirError, append_jsonl, as_json, check_methods,
-                                  check_seeds, keep_jsonl, open_method, open_run, parse_method,
+                                  check_seeds, field_defaults, keep_jsonl, open_method, open_run, parse_method,
                                   read_jsonl, write_json)
 from lazyq_jax.run.sources import OnlineRounds, SeedData, log, static_data
 from lazyq_jax.tasks import Task
@@ -77,7 +77,7 @@ def lazy_steps(config: Config, sd: SeedData) -> int:
 
 def _record_defaults(record: dict) -> dict:
     """The defaults of a method record's sections (see :func:`open_method`)."""
-    return {"neighbours": to_dict(NeighbourConfig())} if record.get("method") == "lazy" else {}
+    return {"neighbours": field_defaults(NeighbourConfig())} if record.get("method") == "lazy" else {}
 
 
 def build_agent(ctx: Context, spec: MethodSpec, sd: SeedData) -> tuple[Agent, dict]:
