@@ -6,11 +6,9 @@ from typing import Callable
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from flax import struct
 
 from lazyq_jax.local_model import epanechnikov_weights, fit_local_linear, greedy_action, neighbour_offsets
-from lazyq_jax.neighbours import GridIndex, build_index, is_grid_space, query_neighbours
 from lazyq_jax.neighbours.query import PolicyIndex, build_policy_index, query_policy, stack_policy_indices
 from lazyq_jax.targets import bootstrap_table
 from lazyq_jax.types import Transitions
@@ -33,7 +31,7 @@ class LazyPolicy:
     """Everything the policy reads: a pytree, so it can be passed into ``jit`` (and stacked
     over seeds for ``vmap``)."""
 
-    index: GridIndex | PolicyIndex  # the 2-D grid (states [N, 2], angle goals), else the general one
+    index: PolicyIndex  # the bounded per-step neighbour query (lazyq_jax.neighbours.query)
     actions: jax.Array  # [N, n_a] the dataset's actions a_j
     values: jax.Array  # [N] y_j = r_j + gamma (1 - done_j) V(s'_j, g_j), from the trained V
     action_length: jax.Array  # c (a float32 scalar)
@@ -45,45 +43,35 @@ class LazyPolicy:
 
 
 def policy_index(data_s, data_g, *, k: int, radius_s: float, radius_g: float, growth: float,
-                 max_level: int, n_valid: int | None = None, bounds=None):
+                 max_level: int, n_valid: int | None = None) -> PolicyIndex:
     """The policy's neighbour index over a dataset whose rows ``>= n_valid`` are padding: the
-    grid for 2-D states with angle goals (``bounds`` as in
-    :func:`lazyq_jax.neighbours.build_index`), else the general bounded query
-    (:func:`lazyq_jax.neighbours.query.build_policy_index`)."""
-    n = np.shape(data_s)[0] if n_valid is None else int(n_valid)
-    if is_grid_space(data_s, data_g):
-        return build_index(np.asarray(data_s)[:n], np.asarray(data_g)[:n], k=k, radius_s=radius_s,
-                           radius_g=radius_g, growth=growth, max_level=max_level, bounds=bounds,
-                           capacity=np.shape(data_s)[0])
+    bounded per-step query of :func:`lazyq_jax.neighbours.query.build_policy_index`, in every
+    space (the paper's 2-D states with angle goals included: there it is 2.9x faster than
+    the grid's ``query_neighbours``, whose static window is ``max_level``'s stencil for every
+    query; ``experiments/bench_policy_2d.py``)."""
     return build_policy_index(data_s, data_g, k=k, radius_s=radius_s, radius_g=radius_g,
-                              growth=growth, max_level=max_level, n_valid=n)
+                              growth=growth, max_level=max_level, n_valid=n_valid)
 
 
-def stack_indices(indices: list) -> GridIndex | PolicyIndex:
+def stack_indices(indices: list, like: PolicyIndex | None = None) -> PolicyIndex:
     """Several datasets' policy indices (one per seed, equal row counts) as one, stacked on a
-    leading axis for ``jax.vmap``: the grids get one search window, the general indices one
-    layout and the largest capacities."""
-    if isinstance(indices[0], PolicyIndex):
-        return stack_policy_indices(indices)
-    window = max(index.max_window for index in indices)
-    return jax.tree.map(lambda *x: jnp.stack(x), *[i.replace(max_window=window) for i in indices])
+    leading axis for ``jax.vmap``: one layout and the largest capacities (at least ``like``'s,
+    on its layout where it fits: see :func:`lazyq_jax.neighbours.query.stack_policy_indices`)."""
+    return stack_policy_indices(indices, like=like)
 
 
 def make_lazy_policy(value_fn: Callable, data: Transitions, *, gamma: float, action_length: float,
                      action_set: str = "ball", k: int = 20, radius_s: float = 0.06,
-                     radius_g: float = 0.1, growth: float = 2 ** (1 / 3), max_level: int = 8,
-                     bounds: tuple[float, float, float, float] | None = None) -> LazyPolicy:
+                     radius_g: float = 0.1, growth: float = 2 ** (1 / 3), max_level: int = 8) -> LazyPolicy:
     """Precompute what the policy needs from a trained ``value_fn(s, g)`` and its dataset.
 
     The neighbourhood semantics are those of training (§V-A-2); ``max_level`` bounds
-    the growths a policy query may use (see :func:`lazy_policy`); ``bounds``: the
-    grid's bounds (see :func:`lazyq_jax.build_index`; default: the data's).  States
-    ``[N, 2]`` with angle goals ``[N]`` get the grid index; any other space
-    (``[N, d_s]``, goals ``[N, d_g]`` or ``None``) the general bounded per-step query
-    (:mod:`lazyq_jax.neighbours.query`).
+    the growths a policy query may use (see :func:`lazy_policy`).  Any space: states
+    ``[N, d_s]``, goals ``[N]`` (angles), ``[N, d_g]`` or ``None``; the index is the bounded
+    per-step query of :mod:`lazyq_jax.neighbours.query`.
     """
     index = policy_index(data.s, data.g, k=k, radius_s=radius_s, radius_g=radius_g, growth=growth,
-                         max_level=max_level, bounds=bounds)
+                         max_level=max_level)
     values = jax.jit(bootstrap_table, static_argnums=(0,))(value_fn, data, gamma)
     return LazyPolicy(index, data.a, values, jnp.float32(action_length), action_set)
 
@@ -103,10 +91,7 @@ def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):
     Returns ``(actions[B, n_a], beta[B, n_a], found[B])``.
     """
     x = s if policy.features is None else policy.features(s)
-    if isinstance(policy.index, PolicyIndex):
-        nb = query_policy(policy.index, key, x, g)
-    else:
-        nb = query_neighbours(policy.index, key, x, g)
+    nb = query_policy(policy.index, key, x, g)
     rows = jnp.maximum(nb.idx, 0)
     offsets = None if policy.states is None else neighbour_offsets(
         policy.states[rows], s, None if policy.goals is None else policy.goals[rows],

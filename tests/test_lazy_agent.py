@@ -1,5 +1,5 @@
-"""The lazy agent's policies over several seeds whose search space is the 2-D grid's
-(states [N, 2] with angle goals) without bounds from the task (e.g. a 2-D feature map)."""
+"""The lazy agent's policies over several seeds whose search space is the paper's (states
+[N, 2] with angle goals) without bounds from the task (e.g. a 2-D feature map)."""
 
 import jax
 import jax.numpy as jnp
@@ -15,7 +15,7 @@ from lazyq_jax.types import pad_transitions
 
 def test_seeds_grids_share_bounds_when_the_task_gives_none():
     """Two seeds with different data (so different extents): the policies stack into one
-    pytree (one set of grid bounds, covering both) and act (moves of length c; none where
+    pytree (one layout, covering both) and act (moves of length c; none where
     no neighbourhood is found)."""
     data = [line_task(0, 2000, d=2, goal="angle"), line_task(1, 1500, d=2, goal="angle")]
     data[1] = data[1].replace(s=data[1].s * 0.8, s_next=data[1].s_next * 0.8)  # a smaller extent

@@ -254,6 +254,44 @@ def chi_square_ok(idx, members, k):
     assert m - 1 - 6 * sd < x < m - 1 + 6 * sd, f"chi-square {x:.1f} for {m - 1} dof"
 
 
+def test_stacking_like_an_earlier_index_keeps_its_shapes_and_the_results():
+    # Online rounds: the policy of round r+1 is stacked "like" round r's, so that the rollout
+    # compiled for round r runs it.  On the same layout every capacity is at least like's
+    # (one that must grow becomes a power of two), the jitted query does not recompile, and
+    # the results equal those of the index stacked without like (capacities bound the work,
+    # not the result).  A like on another layout is ignored.
+    k, max_level = 20, 6
+    s, g, qs, qg = _policy_case(2, "angle", 3000, 48, 3, seed=21)
+    grid = ((2, 2 * RG), (0, RS), (1, RS))
+    build = lambda n, cap: build_policy_index(s[:n], g[:n], k=k, radius_s=RS, radius_g=RG, growth=GROWTH,
+                                              max_level=max_level, grid=grid, schedule=(1, max_level),
+                                              capacity=cap)
+    small = stack_policy_indices([build(1500, [3, 5])])
+    plain = stack_policy_indices([build(3000, [4, 40])])
+    grown = stack_policy_indices([build(3000, [4, 40])], like=small)
+    assert [p.cap for p in small.phases] == [3, 5]
+    assert [p.cap for p in grown.phases] == [4, 64]  # grown past like's: powers of two
+    kept = stack_policy_indices([build(3000, [2, 4])], like=grown)  # needs less: like's shapes
+    assert [p.cap for p in kept.phases] == [4, 64]
+    assert jax.tree.structure(kept) == jax.tree.structure(grown)
+    assert [x.shape for x in jax.tree.leaves(kept)] == [x.shape for x in jax.tree.leaves(grown)]
+    run = jax.jit(jax.vmap(query_policy, in_axes=(0, None, None, None)))
+    key = jax.random.PRNGKey(5)
+    ref, *others = [run(index, key, jnp.asarray(qs), jnp.asarray(qg)) for index in (plain, grown, kept)]
+    assert run._cache_size() == 2  # plain, then grown and kept (one shape)
+    for nb in (ref, *others):
+        assert not np.asarray(nb.overflow).any()
+    for nb in others:
+        for a, b in zip((nb.idx, nb.level, nb.count), (ref.idx, ref.level, ref.count)):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    lam, level, count = reference(s, g, qs, qg, k, max_level)
+    assert_exact(jax.tree.map(lambda x: x[0], ref), lam, level, count, k)
+    other = stack_policy_indices([build_policy_index(s, g, k=k, radius_s=RS, radius_g=RG, growth=GROWTH,
+                                                     max_level=max_level, grid=((0, RS), (1, RS)),
+                                                     schedule=(1, max_level), capacity=[2, 4])], like=grown)
+    assert [p.cap for p in other.phases] == [2, 4]  # another grid: like ignored
+
+
 def test_policy_samples_uniformly():
     # One query at the origin with 30 members (k = 8): R rows through the phase pool (one
     # batch of R copies: independent draws) and through the fallback scan (R keys).

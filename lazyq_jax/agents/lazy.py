@@ -17,7 +17,6 @@ action value model Q(s, a, g) ~ alpha + beta.a (Eq. 4), behind the agent interfa
 from __future__ import annotations
 
 import dataclasses
-import math
 from functools import partial
 
 import jax
@@ -29,7 +28,7 @@ from lazyq_jax.agents.base import Agent, Problem
 from lazyq_jax.config import NeighbourConfig, TrainConfig
 from lazyq_jax.keys import purpose_key
 from lazyq_jax.local_model import epanechnikov_weights
-from lazyq_jax.neighbours import GridIndex, build_index, find_neighbours, is_grid_space, search_all
+from lazyq_jax.neighbours import build_index, find_neighbours, is_grid_space, search_all
 from lazyq_jax.parallel import over_seeds
 from lazyq_jax.policy import FitKernel, LazyPolicy, lazy_policy, policy_index, stack_indices
 from lazyq_jax.targets import bootstrap_table
@@ -166,24 +165,14 @@ class LazyAgent(Agent):
         bootstrapped values ``r + gamma (1 - done) V(s', g)`` of its trained V."""
         nc, n_seeds = self.config.neighbours, int(np.shape(n_valid)[0])
         xs = [self.search_space(data.s[i]) for i in range(n_seeds)]
-        bounds = self.problem.search_bounds
-        if bounds is None and is_grid_space(xs[0], None if data.g is None else data.g[0]):
-            # The seeds' grids are stacked into one pytree: they need one set of bounds (the
-            # task gives none, e.g. for a 2-D feature map): those of every seed's points.
-            pts = np.concatenate([np.asarray(x)[: int(n)] for x, n in zip(xs, n_valid)])
-            bounds = (*pts.min(0).tolist(), *pts.max(0).tolist())
         indices = [policy_index(xs[i], None if data.g is None else np.asarray(data.g[i]),
                                 k=nc.k, radius_s=nc.radius_s, radius_g=nc.radius_g, growth=nc.growth,
-                                max_level=nc.max_level, n_valid=int(n_valid[i]), bounds=bounds)
+                                max_level=nc.max_level, n_valid=int(n_valid[i]))
                    for i in range(n_seeds)]
-        index = stack_indices(indices)
-        if isinstance(index, GridIndex):
-            # The query's static window, sized for the data the capacity may still hold (online
-            # rounds: the density near the disk grows at most that much if the new data spread
-            # like the old), as a power of two, kept from call to call: nothing recompiles.
-            grow = data.r.shape[1] / max(1, int(np.min(n_valid)))
-            self._window = max(getattr(self, "_window", 0), _pow2(math.ceil(index.max_window * grow)))
-            index = index.replace(max_window=self._window)
+        # On the previous call's layout and capacities where they serve (online rounds: the
+        # rollout compiled for the last round's policy runs this one without recompiling).
+        index = stack_indices(indices, like=getattr(self, "_policy_like", None))
+        self._policy_like = index
         gamma = self.config.train.gamma
         values = over_seeds(lambda st, d: bootstrap_table(self.trainer.value_fn(st), d, gamma),
                             n_seeds)(states, data)
@@ -206,10 +195,6 @@ class LazyAgent(Agent):
 def _weights(x, g, idx, level, *, radius_s, radius_g, growth):
     return epanechnikov_weights(x[idx], x, None if g is None else g[idx], g, level,
                                 radius_s=radius_s, radius_g=radius_g, growth=growth)
-
-
-def _pow2(n: int) -> int:
-    return 1 << max(int(n) - 1, 0).bit_length()
 
 
 def make(config: LazyConfig | None, problem: Problem, *, mesh: Mesh | None = None) -> LazyAgent:

@@ -7,10 +7,11 @@ One semantics (the float32 membership test of :mod:`lazyq_jax.neighbours.grid` a
 
 * :mod:`~lazyq_jax.neighbours.grid`: 2-D states with angle goals (the paper's case), a
   grid hash with fixed bounds and capacities so that seeds share compiled passes,
-  the device mesh, and a jittable bounded query for the policy;
+  the device mesh, and a jittable bounded query (``query_neighbours``);
 * :mod:`~lazyq_jax.neighbours.nd`: any ``d_s <= 10`` with angle, vector or no goals, the
   device mesh (chunks dealt to the devices);
-* :mod:`~lazyq_jax.neighbours.query`: the policy's jittable per-step query in any space.
+* :mod:`~lazyq_jax.neighbours.query`: the policy's jittable per-step query in any space
+  (the lazy policy's, on every task).
 
 :func:`find_neighbours` picks the engine from the shapes.
 """

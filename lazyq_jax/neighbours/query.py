@@ -65,8 +65,12 @@ datasets stacked over seeds).  :func:`stack_policy_indices` gives several datase
 indices one layout (the union of their grids' bounds), the largest capacities and
 padded arrays, stacked on a leading axis for ``jax.vmap`` over seeds.
 
-The scan engine costs ``O(N (d_s + d_g))`` a query (11-14 ms at N = 1M on 2 cores); the
-2-D state + angle case keeps its grid (:func:`lazyq_jax.neighbours.grid.query_neighbours`).
+The scan engine costs ``O(N (d_s + d_g))`` a query (11-14 ms at N = 1M on 2 cores).  The
+lazy policy uses the policy index in every space, the paper's 2-D states with angle goals
+included: there the grid's own jittable query
+(:func:`lazyq_jax.neighbours.grid.query_neighbours`, kept as a public function) evaluates
+the stencil of ``max_level`` for every query, and the policy index's phases do less
+(``experiments/bench_policy_2d.py``).
 """
 
 from __future__ import annotations
@@ -678,7 +682,14 @@ def _data_of(index: PolicyIndex):
     return cols
 
 
-def stack_policy_indices(indices, *, seed=0) -> PolicyIndex:
+_SETTINGS = ("k", "radius_s", "radius_g", "growth", "d_s", "goal", "d_g", "max_level")
+
+
+def _pow2(n: int) -> int:
+    return 1 << max(int(n) - 1, 0).bit_length()
+
+
+def stack_policy_indices(indices, *, seed=0, like: PolicyIndex | None = None) -> PolicyIndex:
     """Several datasets' indices as one, arrays stacked on a leading axis, for ``jax.vmap``
     over seeds (``jax.vmap(query_policy, in_axes=(0, 0, 0, 0))``).
 
@@ -688,6 +699,16 @@ def stack_policy_indices(indices, *, seed=0) -> PolicyIndex:
     phase levels (host; a sort per dataset).  Every capacity and slot fraction is raised to
     the largest, the entry arrays padded (padding entries are never read).  A stacked
     query equals each dataset's own query on the common layout (tests check this).
+
+    ``like``: an earlier index (stacked or not) whose compiled queries should serve the new
+    one too, e.g. a rollout jitted for the policy of the previous online round.  Where the
+    stacked layout (settings, grid and phase levels) is ``like``'s, no capacity, slot fraction
+    or entry count falls below ``like``'s, and a capacity that must grow is rounded up to a
+    power of two (so that later growth rarely recompiles); elsewhere ``like`` is ignored.
+    Capacities bound the work of a query, not its result, so the result is the same with or
+    without ``like`` (it depends on the data, not on earlier calls), except for a query whose
+    stencil overflows the smaller capacities: the fallback scan answers it with another
+    uniform sample (never seen at the measured capacities).
     """
     indices = list(indices)
     if not indices or not all(isinstance(i, PolicyIndex) for i in indices):
@@ -695,7 +716,7 @@ def stack_policy_indices(indices, *, seed=0) -> PolicyIndex:
     if any(np.ndim(i.n_entries) != 0 for i in indices):
         raise ValueError("stack_policy_indices takes single-dataset indices (already stacked: one has a seed axis)")
     first = indices[0]
-    for name in ("k", "radius_s", "radius_g", "growth", "d_s", "goal", "d_g", "max_level", "n_rows"):
+    for name in (*_SETTINGS, "n_rows"):
         values = [getattr(i, name) for i in indices]
         if any(v != values[0] for v in values):
             raise ValueError(f"indices differ in {name} ({values}); build them with the same settings (pad the "
@@ -728,10 +749,21 @@ def stack_policy_indices(indices, *, seed=0) -> PolicyIndex:
                                    capacity=None, qcols=q))
         indices = rebuilt
         first = indices[0]
-    phases = tuple(Phase(p.lo, p.hi, *(max(getattr(i.phases[j], f) for i in indices) for f in ("frac", "min_slots",
-                                                                                               "cap")))
+    if like is not None and not (isinstance(like, PolicyIndex) and like.grid == first.grid
+                                 and all(getattr(like, f) == getattr(first, f) for f in _SETTINGS)
+                                 and [(p.lo, p.hi) for p in like.phases] == [(p.lo, p.hi) for p in first.phases]):
+        like = None
+
+    def widest(j, field):
+        need = max(getattr(i.phases[j], field) for i in indices)
+        if like is None:
+            return need
+        old = getattr(like.phases[j], field)
+        return old if need <= old else (_pow2(need) if field == "cap" else need)
+
+    phases = tuple(Phase(p.lo, p.hi, *(widest(j, f) for f in ("frac", "min_slots", "cap")))
                    for j, p in enumerate(first.phases))
-    e = max(int(i.orig.shape[0]) for i in indices)
+    e = max([int(i.orig.shape[0]) for i in indices] + ([int(like.orig.shape[-1])] if like is not None else []))
 
     def pad(i):
         extra = e - int(i.orig.shape[0])
