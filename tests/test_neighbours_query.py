@@ -263,12 +263,14 @@ def test_stacking_like_an_earlier_index_keeps_its_shapes_and_the_results():
     k, max_level = 20, 6
     s, g, qs, qg = _policy_case(2, "angle", 3000, 48, 3, seed=21)
     grid = ((2, 2 * RG), (0, RS), (1, RS))
-    build = lambda n, cap: build_policy_index(s[:n], g[:n], k=k, radius_s=RS, radius_g=RG, growth=GROWTH,
+    build = lambda n, cap: build_policy_index(s, g, k=k, radius_s=RS, radius_g=RG, growth=GROWTH,
                                               max_level=max_level, grid=grid, schedule=(1, max_level),
-                                              capacity=cap)
+                                              capacity=cap, n_valid=n)
     small = stack_policy_indices([build(1500, [3, 5])])
+    assert small.orig.shape == (1, 3000)  # entries padded to the rows: half of them valid
     plain = stack_policy_indices([build(3000, [4, 40])])
-    grown = stack_policy_indices([build(3000, [4, 40])], like=small)
+    shapes = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), small)  # what the agent keeps
+    grown = stack_policy_indices([build(3000, [4, 40])], like=shapes)
     assert [p.cap for p in small.phases] == [3, 5]
     assert [p.cap for p in grown.phases] == [4, 64]  # grown past like's: powers of two
     kept = stack_policy_indices([build(3000, [2, 4])], like=grown)  # needs less: like's shapes

@@ -169,10 +169,11 @@ class LazyAgent(Agent):
                                 k=nc.k, radius_s=nc.radius_s, radius_g=nc.radius_g, growth=nc.growth,
                                 max_level=nc.max_level, n_valid=int(n_valid[i]))
                    for i in range(n_seeds)]
-        # On the previous call's layout and capacities where they serve (online rounds: the
-        # rollout compiled for the last round's policy runs this one without recompiling).
+        # At least the previous call's capacities where the data chose the same layout (online
+        # rounds: the rollout compiled for the last round's policy then runs this one); only
+        # the shapes are kept.
         index = stack_indices(indices, like=getattr(self, "_policy_like", None))
-        self._policy_like = index
+        self._policy_like = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), index)
         gamma = self.config.train.gamma
         values = over_seeds(lambda st, d: bootstrap_table(self.trainer.value_fn(st), d, gamma),
                             n_seeds)(states, data)

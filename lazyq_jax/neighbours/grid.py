@@ -43,7 +43,8 @@ Two entry points:
   Sizes that depend on the data (number of items, queries still growing) are
   read back between passes, so it is not itself jittable.
 * :func:`build_index` once, then :func:`query_neighbours` (pure, jittable, e.g.
-  inside the ``lax.scan`` of a policy rollout): static shapes whose capacities
+  inside a ``lax.scan``; the lazy policy uses :mod:`lazyq_jax.neighbours.query`, whose
+  phases do less work per query): static shapes whose capacities
   are bounded from the data at build time, levels ``0..index.max_level``. A query
   that would need more growth is *reported* (``level == -1``, ``idx == -1``,
   ``Neighbours.found`` false); :func:`check_found` raises on it outside ``jit``.
@@ -374,8 +375,10 @@ def query_neighbours(index: GridIndex, key, query_s, query_g) -> Neighbours:
     its exact level and an exact sample. A query needing more growth gets
     ``level == -1`` and ``idx == -1`` (see :func:`check_found`;
     :func:`find_neighbours` has no such limit). The work is that of the
-    ``max_level`` stencil for every query: meant for small batches (a policy
-    step). Batch the queries rather than ``vmap`` over this function.
+    ``max_level`` stencil for every query: meant for small batches
+    (:func:`lazyq_jax.neighbours.query.query_policy` does less work per query where
+    most queries need few growths). Batch the queries rather than ``vmap`` over this
+    function.
     """
     if query_s.ndim != 2 or query_s.shape[1] != 2 or query_g.shape != query_s.shape[:1]:
         raise ValueError(f"query_s must be [Q, 2] and query_g [Q]; got {query_s.shape} and {query_g.shape}")

@@ -700,11 +700,14 @@ def stack_policy_indices(indices, *, seed=0, like: PolicyIndex | None = None) ->
     the largest, the entry arrays padded (padding entries are never read).  A stacked
     query equals each dataset's own query on the common layout (tests check this).
 
-    ``like``: an earlier index (stacked or not) whose compiled queries should serve the new
-    one too, e.g. a rollout jitted for the policy of the previous online round.  Where the
-    stacked layout (settings, grid and phase levels) is ``like``'s, no capacity, slot fraction
-    or entry count falls below ``like``'s, and a capacity that must grow is rounded up to a
-    power of two (so that later growth rarely recompiles); elsewhere ``like`` is ignored.
+    The entry arrays are padded to the datasets' rows (``n_rows``), so an index keeps its
+    shapes while its dataset fills the padding rows.  ``like``: an earlier index (stacked or
+    not, or its shapes: ``jax.ShapeDtypeStruct`` leaves) whose compiled queries should serve
+    the new one too, e.g. a rollout jitted for the policy of the previous online round.
+    Where the stacked layout (settings, grid and phase levels, which the data choose) is
+    ``like``'s, no capacity, slot fraction or entry count falls below ``like``'s, and a
+    capacity that must grow is rounded up to a power of two; elsewhere ``like`` is ignored
+    (new shapes: the query compiles again).
     Capacities bound the work of a query, not its result, so the result is the same with or
     without ``like`` (it depends on the data, not on earlier calls), except for a query whose
     stencil overflows the smaller capacities: the fallback scan answers it with another
@@ -763,7 +766,10 @@ def stack_policy_indices(indices, *, seed=0, like: PolicyIndex | None = None) ->
 
     phases = tuple(Phase(p.lo, p.hi, *(widest(j, f) for f in ("frac", "min_slots", "cap")))
                    for j, p in enumerate(first.phases))
-    e = max([int(i.orig.shape[0]) for i in indices] + ([int(like.orig.shape[-1])] if like is not None else []))
+    # Entries padded to the rows of the (padded) datasets: the shapes do not change while a
+    # dataset fills its rows (online rounds), only when the rows or the layout change.
+    e = max([int(i.orig.shape[0]) for i in indices] + [first.n_rows]
+            + ([int(like.orig.shape[-1])] if like is not None else []))
 
     def pad(i):
         extra = e - int(i.orig.shape[0])

@@ -63,8 +63,9 @@ class PushTask(Task):
     def search_bounds(self, config: Config) -> tuple[float, float, float, float]:
         """Fixed bounds of the neighbour grid covering every state of the data (finger starts
         in ``[-R, R]^2`` plus ``moves_per_start - 1`` moves) and of the online rounds'
-        episodes: the grid, hence the neighbour samples, are the same for every dataset of
-        a config (a study's seeds, the online rounds), and the compiled passes are shared."""
+        episodes: the training search's grid, hence its neighbour samples, are the same for
+        every dataset of a config (a study's seeds, the online rounds), and the compiled
+        passes are shared (the policy's index chooses its own layout)."""
         c, o = config.collect, config.online
         step = c.push.action_length
         r = c.start_range + (c.moves_per_start - 1) * step
