@@ -30,6 +30,7 @@ import time
 import jax
 import numpy as np
 
+from bench_neighbours_query import timed  # the script's own folder is on sys.path
 from lazyq_jax import tasks
 from lazyq_jax.config import override
 from lazyq_jax.neighbours import build_index, query_neighbours
@@ -48,12 +49,6 @@ def dataset(space: str):
     data = task.collect(jax.random.PRNGKey(0), config)
     x = np.asarray(data.s) if problem.features is None else np.asarray(jax.jit(problem.features)(data.s))
     return x.astype(np.float32), np.asarray(data.g, np.float32), config.neighbours, problem.search_bounds
-
-
-def timed(fn, *args):
-    t = time.perf_counter()
-    out = jax.block_until_ready(fn(*args))
-    return time.perf_counter() - t, out
 
 
 def main() -> None:
