@@ -29,8 +29,8 @@ import time
 
 import jax
 import numpy as np
-
 from bench_neighbours_query import timed  # the script's own folder is on sys.path
+
 from lazyq_jax import tasks
 from lazyq_jax.config import override
 from lazyq_jax.neighbours import build_index, query_neighbours
