@@ -15,12 +15,15 @@ to some sections, e.g. when each method was trained in its own run directory).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
 
 from lazyq_jax import tasks
+from lazyq_jax.run.rundir import as_json
+from lazyq_jax.run.runner import open_existing
 from lazyq_jax.stats import format_ci, t_interval
 
 NOT_COMPARED = ("seed", "parallel")  # what may differ between the runs of one table
@@ -45,8 +48,10 @@ def per_seed_rows(run_dirs: list[Path], method: str) -> dict[int, dict]:
 
 
 def check_settings(run_dirs: list[Path], same: list[str] | None) -> str:
-    """The runs' common task; exits naming the first section that differs."""
-    configs = {str(d): json.loads((d / "run.json").read_text())["config"] for d in run_dirs}
+    """The runs' common task; exits naming the first section that differs.  Each stored
+    config is read back as the runner reads it (a field added to lazyq-jax later takes its
+    default, as it did when the run was made)."""
+    configs = {str(d): as_json(dataclasses.asdict(open_existing(d)[0])) for d in run_dirs}
     first_dir, first = next(iter(configs.items()))
     sections = same or [k for k in first if k not in NOT_COMPARED]
     for d, cfg in configs.items():
