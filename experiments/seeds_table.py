@@ -88,15 +88,15 @@ def main() -> None:
             if all(k in rows[s] for s in seeds):
                 print(f"    {label} per seed: " + " / ".join(f"{100 * rows[s][k]:.1f}" for s in seeds))
     ref_name, ref = args.methods[0], table[args.methods[0]]
-    key = task.rates[0][0]
     for m in args.methods[1:]:
         common = sorted(set(ref) & set(table[m]))
         if len(common) < 2:
             continue
-        diff = [table[m][s][key] - ref[s][key] for s in common]
-        ci = t_interval(diff, bounds=None)
-        print(f"{m} - {ref_name}, {task.rates[0][1]} (paired over seeds {common}): "
-              f"{format_ci(ci).replace(' %', ' points')}")
+        for key, label in task.rates:
+            if all(key in table[m][s] and key in ref[s] for s in common):
+                ci = t_interval([table[m][s][key] - ref[s][key] for s in common], bounds=None)
+                print(f"{m} - {ref_name}, {label} (paired over seeds {common}): "
+                      f"{format_ci(ci).replace(' %', ' points')}")
 
 
 if __name__ == "__main__":
