@@ -46,7 +46,7 @@ def policy_index(data_s, data_g, *, k: int, radius_s: float, radius_g: float, gr
                  max_level: int, n_valid: int | None = None) -> PolicyIndex:
     """The policy's neighbour index over a dataset whose rows ``>= n_valid`` are padding: the
     bounded per-step query of :func:`lazyq_jax.neighbours.query.build_policy_index`, in every
-    space (the paper's 2-D states with angle goals included: there it is 2.9x faster than
+    space (the paper's 2-D states with angle goals included: there it is 3.8x faster than
     the grid's ``query_neighbours``, whose static window is ``max_level``'s stencil for every
     query; ``experiments/bench_policy_2d.py``)."""
     return build_policy_index(data_s, data_g, k=k, radius_s=radius_s, radius_g=radius_g,
