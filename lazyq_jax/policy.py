@@ -9,7 +9,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from lazyq_jax.local_model import epanechnikov_weights, fit_local_linear, greedy_action, neighbour_offsets
-from lazyq_jax.neighbours.query import PolicyIndex, build_policy_index, query_policy, stack_policy_indices
+from lazyq_jax.neighbours.query import PolicyIndex, build_policy_index, query_policy
 from lazyq_jax.targets import bootstrap_table
 from lazyq_jax.types import Transitions
 
@@ -51,13 +51,6 @@ def policy_index(data_s, data_g, *, k: int, radius_s: float, radius_g: float, gr
     query; ``experiments/bench_policy_2d.py``)."""
     return build_policy_index(data_s, data_g, k=k, radius_s=radius_s, radius_g=radius_g,
                               growth=growth, max_level=max_level, n_valid=n_valid)
-
-
-def stack_indices(indices: list, like: PolicyIndex | None = None) -> PolicyIndex:
-    """Several datasets' policy indices (one per seed, equal row counts) as one, stacked on a
-    leading axis for ``jax.vmap``: one layout and the largest capacities (at least ``like``'s,
-    on its layout where it fits: see :func:`lazyq_jax.neighbours.query.stack_policy_indices`)."""
-    return stack_policy_indices(indices, like=like)
 
 
 def make_lazy_policy(value_fn: Callable, data: Transitions, *, gamma: float, action_length: float,

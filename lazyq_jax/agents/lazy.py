@@ -29,8 +29,9 @@ from lazyq_jax.config import NeighbourConfig, TrainConfig
 from lazyq_jax.keys import purpose_key
 from lazyq_jax.local_model import epanechnikov_weights
 from lazyq_jax.neighbours import build_index, find_neighbours, is_grid_space, search_all
+from lazyq_jax.neighbours.query import stack_policy_indices
 from lazyq_jax.parallel import over_seeds
-from lazyq_jax.policy import FitKernel, LazyPolicy, lazy_policy, policy_index, stack_indices
+from lazyq_jax.policy import FitKernel, LazyPolicy, lazy_policy, policy_index
 from lazyq_jax.targets import bootstrap_table
 from lazyq_jax.train import make_train
 from lazyq_jax.types import Transitions
@@ -172,7 +173,7 @@ class LazyAgent(Agent):
         # At least the previous call's capacities where the data chose the same layout (online
         # rounds: the rollout compiled for the last round's policy then runs this one); only
         # the shapes are kept.
-        index = stack_indices(indices, like=getattr(self, "_policy_like", None))
+        index = stack_policy_indices(indices, like=getattr(self, "_policy_like", None))
         self._policy_like = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), index)
         gamma = self.config.train.gamma
         values = over_seeds(lambda st, d: bootstrap_table(self.trainer.value_fn(st), d, gamma),
