@@ -18,7 +18,8 @@ import time
 import jax
 import numpy as np
 
-from lazyq_jax.neighbours import TWO_PI, build_index, radius_tables, search_all, wrap_angle
+from lazyq_jax.neighbours import build_index, radius_tables, search_all, wrap_angle
+from lazyq_jax.neighbours.common import TWO_PI
 
 K, RS, RG, GROWTH = 20, 0.06, 0.1, 2 ** (1 / 3)
 

@@ -36,7 +36,8 @@ import time
 import jax
 import numpy as np
 
-from lazyq_jax.neighbours import TWO_PI, radius_tables, wrap_angle
+from lazyq_jax.neighbours import radius_tables, wrap_angle
+from lazyq_jax.neighbours.common import TWO_PI
 from lazyq_jax.neighbours.nd import build_index_nd, search_all_nd
 
 K, RS, RG, GROWTH = 20, 0.06, 0.1, 2 ** (1 / 3)
