@@ -61,11 +61,10 @@ import numpy as np
 from flax import struct
 from jax.sharding import Mesh, PartitionSpec as P
 
-from lazyq_jax.neighbours.common import (PI, TWO_PI, Neighbours, _check_params, _mix32, _pick_level,
-                                         _select_bit, radius_tables, wrap_angle)
+from lazyq_jax.neighbours.common import (PI, W, Neighbours, _check_params, _items, _member_words, _pick_level,
+                                         _sample_members, _steps, wrap_angle)
 from lazyq_jax.parallel import AXIS, to_host
 
-W = 32  # entries per item (bits per membership word)
 D = 5  # g-cells per g-block (each point is stored D times)
 _FX, _FY, _FG = 0.25, 0.5, 0.5  # cell size / base radius in x, y, g
 _CELL_SLACK = 1.001  # cells slightly above the target so the level-0 stencil stays 5 x 1
@@ -75,9 +74,8 @@ _CELL_SLACK = 1.001  # cells slightly above the target so the level-0 stencil st
 class GridIndex:
     """Prebuilt grid hash over the data (see module docstring); build with :func:`build_index`."""
 
-    xs: jax.Array  # float32 [D*N] entries sorted by (g-block, y-cell, x-cell)
-    ys: jax.Array
-    gs: jax.Array  # wrapped goals
+    cols: jax.Array  # float32 [3, D*N + W]: x, y, wrapped goal of the entries sorted by
+    #                  (g-block, y-cell, x-cell); W padding entries at the end
     orig: jax.Array  # int32 [D*N] index of the entry in the original data
     offsets: jax.Array  # int32 [n_g*n_y*n_x + 1] first entry of each cell
     n_data: jax.Array  # int32 scalar: number of data points (entries past D*n_data are padding)
@@ -95,6 +93,11 @@ class GridIndex:
     margin: float = struct.field(pytree_node=False)  # float32 slack of the stencil
     max_level: int = struct.field(pytree_node=False)  # levels query_neighbours covers
     max_window: int = struct.field(pytree_node=False)  # entries in one range at max_level
+
+    # The space, as the shared membership test reads it (lazyq_jax.neighbours.common).
+    d_s = 2
+    goal = "angle"
+    d_g = 1
 
 
 # ----------------------------------------------------------------------------- validation
@@ -181,10 +184,11 @@ def build_index(data_s, data_g, *, k=20, radius_s=0.06, radius_g=0.1, growth=2 *
     elif max_window < own_window:
         raise ValueError(f"max_window={max_window} is below this data's {own_window}")
     pad = D * (capacity - n)  # never addressed: every cell range ends before D * n
-    entries = lambda a, fill: jnp.asarray(np.concatenate([a, np.full(pad, fill, a.dtype)]))
+    cols = np.zeros((3, D * capacity + W), np.float32)  # + W: every item is one contiguous slice
+    cols[0, :D * n], cols[1, :D * n], cols[2, :D * n] = s[src, 0], s[src, 1], g[src]
     return GridIndex(
-        xs=entries(s[src, 0], 0), ys=entries(s[src, 1], 0), gs=entries(g[src], 0),
-        orig=entries(src.astype(np.int32), 0), offsets=jnp.asarray(offsets.astype(np.int32)),
+        cols=jnp.asarray(cols), orig=jnp.asarray(np.concatenate([src.astype(np.int32), np.zeros(pad, np.int32)])),
+        offsets=jnp.asarray(offsets.astype(np.int32)),
         n_data=jnp.int32(n), k=int(k), radius_s=float(radius_s), radius_g=float(radius_g),
         growth=float(growth), x0=x0, y0=y0, h_x=h_x, h_y=h_y, n_x=n_x, n_y=n_y, n_g=n_g,
         margin=margin, max_level=int(max_level), max_window=int(max_window),
@@ -242,93 +246,22 @@ def _plan(index: GridIndex, qx, qy, qg, level: int):
     return start.reshape(q, -1), length.reshape(q, -1)
 
 
-def _items(start, length, n_items_total: int):
-    """Cut every range into items of ``W`` entries; items are grouped by query, in order."""
-    q, r = start.shape
-    nit = ((length + W - 1) // W).reshape(-1)
-    cum = jnp.cumsum(nit)
-    first = cum - nit  # first item of each (query, range) pair
-    # pair of item t = (number of pairs starting at or before t) - 1; empty pairs share
-    # their start with the next non-empty pair and are counted before it.
-    starts = jnp.zeros(n_items_total, jnp.int32).at[first].add(1, mode="drop")
-    pair = jnp.cumsum(starts) - 1
-    chunk = jnp.arange(n_items_total, dtype=jnp.int32) - first[pair]
-    item_start = start.reshape(-1)[pair] + W * chunk
-    item_valid = jnp.clip(length.reshape(-1)[pair] - W * chunk, 0, W)
-    per_query = nit.reshape(q, r)
-    return pair // r, item_start, item_valid, first.reshape(q, r)[:, 0], per_query.sum(1)
-
-
-def _member_words(index: GridIndex, qx, qy, qg, item_q, item_start, item_valid, levels):
-    """Membership words ``[T, len(levels)]`` (bit w: entry ``item_start + w`` is in ``B_level``)."""
-    r2s, rg = radius_tables(index.radius_s, index.radius_g, index.growth, levels)
-    lane = jnp.arange(W, dtype=jnp.int32)
-    pos = jnp.minimum(item_start[:, None] + lane, index.xs.shape[0] - 1)
-    dx = index.xs[pos] - qx[item_q][:, None]
-    dy = index.ys[pos] - qy[item_q][:, None]
-    d = jnp.abs(index.gs[pos] - qg[item_q][:, None])
-    d2 = dx * dx + dy * dy
-    dg = jnp.minimum(d, TWO_PI - d)
-    valid = lane < item_valid[:, None]
-    bits = jnp.left_shift(jnp.uint32(1), lane.astype(jnp.uint32))
-    words = [jnp.sum(jnp.where(valid & (d2 < a) & (dg < b), bits, jnp.uint32(0)), axis=1, dtype=jnp.uint32)
-             for a, b in zip(r2s, rg)]
-    return jnp.stack(words, axis=1)
-
-
-def _floyd_ranks(seed, m, k: int):
-    """``k`` distinct ranks in ``[0, m)`` per row, uniform over k-subsets (Floyd's algorithm).
-
-    Each draw ``t ~ U{0..j}`` is ``floor(u * (j + 1))`` with a 24-bit uniform ``u`` from a
-    hash of the query's ``seed`` (uint32, one threefry draw per query); the bias is below
-    ``m / 2**24``.
-    """
-    cols = []
-    for i in range(k):  # unrolled: draw i only compares with the i earlier draws
-        j = m - k + i
-        u = (_mix32(seed ^ jnp.uint32((i * 0x9E3779B9) & 0xFFFFFFFF)) >> 8).astype(jnp.float32)
-        t = jnp.minimum((u * jnp.float32(2.0**-24) * (j + 1).astype(jnp.float32)).astype(jnp.int32), j)
-        taken = jnp.zeros(m.shape, bool)
-        for c in cols:
-            taken = taken | (c == t)
-        cols.append(jnp.where(taken, j, t))
-    return jnp.stack(cols, axis=1)
-
-
 def _search(index: GridIndex, seed, qx, qy, qg, *, lo: int, hi: int, n_items: int, steps: int):
     """Levels ``lo..hi`` for every query (stencil of level ``hi``), then sampling at that level.
 
     ``seed``: uint32 ``[Q]``, the random bits of each query's sample.
 
     ``n_items`` must be at least the total number of items; ``steps`` at least the
-    bit length of the largest number of items of one query. Returns ``(idx, level, count)``
+    bit length of the largest number of items of one query (:func:`_steps`). Returns ``(idx, level, count)``
     with ``level == -1`` (``idx == -1``, ``count`` at level ``hi``) where ``|B_hi| < k``.
     """
     k = index.k
     start, length = _plan(index, qx, qy, qg, hi)
     item_q, item_start, item_valid, first, n_q = _items(start, length, n_items)
-    words = _member_words(index, qx, qy, qg, item_q, item_start, item_valid, range(lo, hi + 1))
-    q = qx.shape[0]
-    found, li, level, m = _pick_level(words, item_q, q, k, lo)
-    # Words of each item at its query's level, their popcounts and global exclusive prefix.
-    word = jnp.take_along_axis(words, li[item_q][:, None], 1)[:, 0]
-    pc = jax.lax.population_count(word).astype(jnp.int32)
-    prefix = jnp.cumsum(pc) - pc
-    ranks = _floyd_ranks(seed, jnp.where(found, m, k), k)  # [Q, k]
-    target = jnp.take(prefix, jnp.minimum(first, n_items - 1))[:, None] + ranks
-    # Last item t of the query with prefix[t] <= target (upper-bound search in its item window).
-    lo_t = jnp.broadcast_to(first[:, None], ranks.shape)
-    size = jnp.broadcast_to(n_q[:, None], ranks.shape)
-    for _ in range(steps):
-        half = size // 2
-        mid = jnp.minimum(lo_t + half, n_items - 1)
-        go = (half > 0) & (prefix[mid] <= target)
-        lo_t = jnp.where(go, mid, lo_t)
-        size = jnp.where(go, size - half, half)
-    t = jnp.minimum(lo_t, n_items - 1)
-    bit = _select_bit(word[t], target - prefix[t])
-    idx = index.orig[jnp.minimum(item_start[t] + bit, index.orig.shape[0] - 1)]
-    idx = jnp.where(found[:, None], idx, -1)
+    words = _member_words(index, jnp.stack([qx, qy, qg]), item_q, item_start, item_valid, lo, hi)
+    found, li, level, m = _pick_level(words, item_q, qx.shape[0], k, lo)
+    idx = _sample_members(index.orig, words, li, found, m, seed, item_q, item_start, first, n_q, k=k,
+                          steps=steps)
     return idx, level.astype(jnp.int32), m.astype(jnp.int32)
 
 
@@ -389,7 +322,7 @@ def query_neighbours(index: GridIndex, key, query_s, query_g) -> Neighbours:
     seed = jax.random.bits(key, (q,), jnp.uint32)
     idx, level, count = _search(index, seed, qs[:, 0], qs[:, 1], wrap_angle(jnp.asarray(query_g)),
                                 lo=0, hi=index.max_level, n_items=max(q * per_query, 1),
-                                steps=per_query.bit_length())
+                                steps=_steps(per_query))
     return Neighbours(idx=idx, level=level, count=count)
 
 
@@ -439,8 +372,8 @@ def search_all(index: GridIndex, key, query_s, query_g, *, mesh: Mesh | None = N
     # Level at which the radii cover everything: |B| = N there.
     real = qs[:n_real] if n_real else qs[:1]
     lo_x, lo_y = min(real[:, 0].min(), index.x0), min(real[:, 1].min(), index.y0)
-    hi_x = max(real[:, 0].max(), float(index.xs.max()))
-    hi_y = max(real[:, 1].max(), float(index.ys.max()))
+    hi_x = max(real[:, 0].max(), float(index.cols[0].max()))
+    hi_y = max(real[:, 1].max(), float(index.cols[1].max()))
     diag = math.hypot(hi_x - lo_x, hi_y - lo_y)
     g = index.growth
     level_all = 1 + max(0, math.ceil(math.log(max(diag, 1e-30) / index.radius_s) / math.log(g)),
@@ -464,7 +397,7 @@ def search_all(index: GridIndex, key, query_s, query_g, *, mesh: Mesh | None = N
         n_it = np.asarray(_items_per_query(index, qs_j[read, 0], qs_j[read, 1], qg_j[read], level=hi))
         out = _pass(index, jax.random.fold_in(key, p), qs_j, qg_j, sub_j, out, lo=lo, hi=hi,
                     n_items=_bucket(n_it.reshape(d, -1).sum(axis=1).max(), coarse=p > 0),
-                    steps=int(n_it.max()).bit_length(), mesh=mesh)
+                    steps=_steps(n_it.max()), mesh=mesh)
         pending = pending[to_host(out[1])[pending] < 0]
         if pending.size and hi >= level_all:
             raise AssertionError("internal error: radius covers all data but fewer than k members")

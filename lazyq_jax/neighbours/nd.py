@@ -75,8 +75,8 @@ the distances are computed once); per-query counts at every level of a pass are
 popcount sums. The closed-form entry level ``ceil(log_growth(...))`` was not needed:
 with a word per level the exact test is the only level computation. Sampling draws
 ``k`` ranks with Floyd's algorithm and maps each to its member through the prefix of
-popcounts (a window compare when a query has at most 32 items, else a binary search)
-and a select-in-word.
+popcounts (a binary search in the query's items) and a select-in-word: the shared core
+of :mod:`lazyq_jax.neighbours.common`.
 
 *Host-driven growth* (as :func:`lazyq_jax.neighbours.grid.search_all`): pass 1 tests level
 0 for all queries (sorted by cell key for locality); queries still short of ``k`` are
@@ -126,14 +126,14 @@ import numpy as np
 from flax import struct
 from jax.sharding import Mesh, PartitionSpec as P
 
-from lazyq_jax.neighbours.common import (TWO_PI, Neighbours, _check_params, _mix32, _pick_level,
-                                         _select_bit, radius_tables, wrap_angle)
+from lazyq_jax.neighbours.common import (TWO_PI, W, Neighbours, _check_params, _items, _key_words, _member_words,
+                                         _pick_level, _query_seeds, _sample_members, _steps, radius_tables,
+                                         wrap_angle)
 from lazyq_jax.parallel import AXIS, put, replicated, sharded, to_host
 
 __all__ = ["GridAxis", "NDIndex", "build_index_nd", "find_neighbours_nd", "membership_level_reference",
            "search_all_nd"]
 
-W = 32  # entries per item (bits per membership word)
 MAX_DIM = 10  # largest d_s and d_g
 MAX_GRID_AXES = 4
 LEVELS_PER_PASS = 16
@@ -615,126 +615,6 @@ def build_index_nd(data_s, data_g=None, *, k=20, radius_s=0.06, radius_g=0.1, gr
 # ----------------------------------------------------------------------------- jitted core
 
 
-def _cumsum(x, b: int = 32):
-    """Inclusive cumsum of a 1-D int array in two levels (blocks of ``b``): ~1.5x faster on CPU
-    than ``jnp.cumsum`` (an associative scan over the whole array)."""
-    n = x.shape[0]
-    if n <= 4 * b:
-        return jnp.cumsum(x)
-    y = jnp.pad(x, (0, -n % b)).reshape(-1, b)
-    within = jnp.cumsum(y, axis=1)
-    tot = within[:, -1]
-    return (within + (jnp.cumsum(tot) - tot)[:, None]).reshape(-1)[:n]
-
-
-def _items(start, length, n_items: int):
-    """Cut every range into items of ``W`` entries; items grouped by query, in order.
-
-    Returns ``(item_q, item_start, item_valid, first item of each query, items per query)``.
-    Items past ``n_items`` are not represented (the caller checks the capacity).
-    """
-    q, r = start.shape
-    nit = ((length + W - 1) // W).reshape(-1)
-    cum = _cumsum(nit)
-    first = cum - nit
-    starts = jnp.zeros(n_items, jnp.int32).at[first].add(1, mode="drop")
-    pair = jnp.clip(_cumsum(starts) - 1, 0, q * r - 1)
-    chunk = jnp.arange(n_items, dtype=jnp.int32) - first[pair]
-    item_start = start.reshape(-1)[pair] + W * chunk
-    item_valid = jnp.clip(length.reshape(-1)[pair] - W * chunk, 0, W)
-    per_query = nit.reshape(q, r)
-    return pair // r, item_start, item_valid, first.reshape(q, r)[:, 0], per_query.sum(1)
-
-
-def _sq(v):
-    """``v*v`` rounded to float32 (the ``max`` keeps XLA from fusing it into a later add)."""
-    return jnp.maximum(v * v, jnp.float32(0))
-
-
-def _member_words(index: NDIndex, qcols, item_q, item_start, item_valid, lo: int, hi: int):
-    """Membership words ``[T, hi - lo + 1]`` (bit w: entry ``item_start + w`` is in ``B_level``)."""
-    levels = np.arange(lo, hi + 1)
-    r2s, rg = radius_tables(index.radius_s, index.radius_g, index.growth, levels)
-    rg2, _ = radius_tables(index.radius_g, index.radius_g, index.growth, levels)
-    lane = jnp.arange(W, dtype=jnp.int32)
-    n_cols = index.cols.shape[0]
-    # One contiguous [n_cols, W] slice per item (cols carry W padding entries at the end):
-    # ~3x faster on CPU than gathering every lane separately.
-    start = jnp.clip(item_start, 0, index.cols.shape[1] - W)
-    x = jax.vmap(lambda s: jax.lax.dynamic_slice(index.cols, (0, s), (n_cols, W)), out_axes=1)(start)
-    qi = qcols[:, item_q]  # [n_cols, T]
-    ds2 = None
-    for c in range(index.d_s):
-        p = _sq(x[c] - qi[c][:, None])
-        ds2 = p if ds2 is None else ds2 + p
-    dg, tg = None, None
-    if index.goal == "angle":
-        d = jnp.abs(x[index.d_s] - qi[index.d_s][:, None])
-        dg, tg = jnp.minimum(d, TWO_PI - d), rg
-    elif index.goal == "vector":
-        for c in range(index.d_s, index.d_s + index.d_g):
-            p = _sq(x[c] - qi[c][:, None])
-            dg = p if dg is None else dg + p
-        tg = rg2
-    valid = lane < item_valid[:, None]
-    bits = jnp.left_shift(jnp.uint32(1), lane.astype(jnp.uint32))
-    if len(levels) == 1:
-        ok = valid & (ds2 < r2s[0])
-        if dg is not None:
-            ok = ok & (dg < tg[0])
-        return jnp.sum(jnp.where(ok, bits, jnp.uint32(0)), axis=1, dtype=jnp.uint32)[:, None]
-    # Several levels: one variadic reduction over the lanes with a word per level, so that XLA
-    # fuses the slice gathers and distances into it once (separate reductions per level made it
-    # materialise the gathered slices, [n_cols, T, W] floats: ~9x slower).
-    words = []
-    for li in range(len(levels)):
-        ok = valid & (ds2 < r2s[li])
-        if dg is not None:
-            ok = ok & (dg < tg[li])
-        words.append(jnp.where(ok, bits, jnp.uint32(0)))
-    zero = [jnp.uint32(0)] * len(words)
-    red = jax.lax.reduce(words, zero, lambda a, b: [x | y for x, y in zip(a, b)], (1,))
-    return jnp.stack(red, axis=1)
-
-
-def _mulhi32(a, b):
-    """High 32 bits of the 64-bit product of two uint32 arrays (no x64 needed)."""
-    m16 = jnp.uint32(0xFFFF)
-    a0, a1, b0, b1 = a & m16, a >> 16, b & m16, b >> 16
-    lo_lo, hi_lo, lo_hi, hi_hi = a0 * b0, a1 * b0, a0 * b1, a1 * b1
-    cross = (lo_lo >> 16) + (hi_lo & m16) + lo_hi
-    return (hi_lo >> 16) + (cross >> 16) + hi_hi
-
-
-def _floyd_ranks(seed, m, k: int):
-    """``k`` distinct ranks in ``[0, m)`` per row, uniform over k-subsets (Floyd's algorithm).
-
-    Draw ``t ~ U{0..j}`` is ``mulhi(u, j + 1)`` with ``u`` a 32-bit hash of the query's
-    ``seed`` and the draw number (bias below ``(j + 1) / 2**32``).
-    """
-    lanes = jnp.arange(k, dtype=jnp.int32)
-
-    def draw(i, cols):  # a loop, not unrolled: k^2 compares, but a small program to compile
-        j = m - k + i
-        u = _mix32(_mix32(seed ^ (i.astype(jnp.uint32) * jnp.uint32(0x9E3779B9))) + i.astype(jnp.uint32))
-        t = _mulhi32(u, (j + 1).astype(jnp.uint32)).astype(jnp.int32)
-        taken = jnp.any((cols == t[:, None]) & (lanes < i), axis=1)
-        return jax.lax.dynamic_update_index_in_dim(cols, jnp.where(taken, j, t), i, axis=1)
-
-    return jax.lax.fori_loop(0, k, draw, jnp.zeros(m.shape + (k,), jnp.int32))
-
-
-def _key_words(key):
-    """Two uint32 words of ``key`` (one threefry call, outside the passes)."""
-    return jax.random.bits(key, (2,), jnp.uint32)
-
-
-def _query_seeds(key_words, q_ids):
-    """uint32 per query, a keyed hash of its row ``q``: independent of batching and padding."""
-    x = _mix32(q_ids.astype(jnp.uint32) ^ jnp.uint32(0x6A09E667))
-    return _mix32(_mix32(x ^ key_words[0]) + key_words[1])
-
-
 def _search_chunk(index: NDIndex, seed, real, qcols, ip, fr, *, lo, hi, cap, steps, full):
     """Levels ``lo..hi`` for one chunk of queries (stencil of level ``hi``), then sampling.
 
@@ -753,33 +633,8 @@ def _search_chunk(index: NDIndex, seed, real, qcols, ip, fr, *, lo, hi, cap, ste
     item_q, item_start, item_valid, first, n_q = _items(start, length, cap)
     words = _member_words(index, qcols, item_q, item_start, item_valid, lo, hi)
     found, li, level, m = _pick_level(words, item_q, c, k, lo)
-    word = jnp.take_along_axis(words, li[item_q][:, None], 1)[:, 0]
-    pc = jax.lax.population_count(word).astype(jnp.int32)
-    prefix = _cumsum(pc) - pc
-    ranks = _floyd_ranks(seed, jnp.where(found, m, k), k)  # [C, k]
-    target = jnp.take(prefix, jnp.minimum(first, cap - 1))[:, None] + ranks
-
-    # The item of each rank: the last item t of the query with prefix[t] <= target.
-    if steps <= 5:  # at most 32 items a query: compare with the query's whole window at once
-        j = jnp.arange(1 << steps, dtype=jnp.int32)
-        win = prefix[jnp.minimum(first[:, None] + j, cap - 1)]  # [C, 2^steps], one gather a query
-        inside = j < n_q[:, None]
-        before = (win[:, None, :] <= target[:, :, None]) & inside[:, None, :]
-        lo_t = first[:, None] + jnp.sum(before, axis=2, dtype=jnp.int32) - 1
-    else:
-        def bisect(_, carry):
-            lo_t, size = carry
-            half = size // 2
-            mid = jnp.minimum(lo_t + half, cap - 1)
-            go = (half > 0) & (prefix[mid] <= target)
-            return jnp.where(go, mid, lo_t), jnp.where(go, size - half, half)
-
-        lo_t, _ = jax.lax.fori_loop(0, steps, bisect, (jnp.broadcast_to(first[:, None], ranks.shape),
-                                                       jnp.broadcast_to(n_q[:, None], ranks.shape)))
-    t = jnp.minimum(lo_t, cap - 1)
-    bit = _select_bit(word[t], target - prefix[t])
-    idx = index.orig[jnp.minimum(item_start[t] + bit, index.n_entries - 1)]
-    idx = jnp.where(found[:, None], idx, -1)
+    idx = _sample_members(index.orig, words, li, found, m, seed, item_q, item_start, first, n_q, k=k,
+                          steps=steps)
     return idx, level.astype(jnp.int32), m.astype(jnp.int32), need, max_items, span_bad
 
 
@@ -817,13 +672,6 @@ def _count_items(index: NDIndex, ip, fr, real, *, level, full):
         return jnp.where(real_b, ((length + W - 1) // W).sum(axis=1), 0)
 
     return jax.lax.map(block, (jnp.moveaxis(ip, 1, 0), jnp.moveaxis(fr, 1, 0), real))
-
-
-def _steps(max_items: int) -> int:
-    """Static search steps for queries of up to ``max_items`` items: the bit length (exact up
-    to 5, where the window search is used), else rounded up to a multiple of 4 (recompiles)."""
-    b = max(int(max_items).bit_length(), 1)
-    return b if b <= 5 else -(-b // 4) * 4
 
 
 def _pow2(n: int) -> int:

@@ -84,12 +84,11 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from lazyq_jax.neighbours.common import (PI, TWO_PI, Neighbours, _check_params, _mix32, _pick_level,
-                                         _select_bit, radius_tables, wrap_angle)
-from lazyq_jax.neighbours.nd import (MAX_GRID_AXES, W, GridAxis, _axes_info, _cumsum, _floyd_ranks, _items,
-                                     _key_words, _member_words, _offsets, _points, _query_cells,
-                                     _query_seeds, _ranges, _sorted_table, _table, _table_limit,
-                                     membership_level_reference)
+from lazyq_jax.neighbours.common import (PI, TWO_PI, W, Neighbours, _check_params, _items, _key_words,
+                                         _member_words, _mix32, _pick_level, _query_seeds, _sample_members,
+                                         _sq, radius_tables, wrap_angle)
+from lazyq_jax.neighbours.nd import (MAX_GRID_AXES, GridAxis, _axes_info, _offsets, _points, _query_cells,
+                                     _ranges, _sorted_table, _table, _table_limit, membership_level_reference)
 
 __all__ = ["Phase", "PolicyIndex", "PolicyNeighbours", "ScanIndex", "build_policy_index", "build_scan_index",
            "query_neighbours_scan", "query_policy", "stack_policy_indices"]
@@ -145,11 +144,6 @@ def _wrap_jit(g):
     a = g + PI
     f = jnp.searchsorted(jnp.asarray(_WRAP_T), a, side="right", method="compare_all")
     return g - jnp.asarray(_WRAP_P)[jnp.clip(f, 0, 2 * _WRAP_TURNS)]
-
-
-def _sq(v):
-    """``v*v`` rounded to float32 before any add (no fused multiply-add; see nd)."""
-    return jnp.maximum(v * v, jnp.float32(0))
 
 
 def _entry_levels(cols, q, *, d_s, goal, tables):
@@ -828,26 +822,8 @@ def _phase(index: PolicyIndex, seeds, real, qcols, ip, fr, phase: Phase, n_slots
     item_q, item_start, item_valid, first, n_q = _items(start, length, cap)
     words = _member_words(index, qc, item_q, item_start, item_valid, phase.lo, phase.hi)
     found, li, level, m = _pick_level(words, item_q, n_slots, k, phase.lo)
-    word = jnp.take_along_axis(words, li[item_q][:, None], 1)[:, 0]
-    pc = jax.lax.population_count(word).astype(jnp.int32)
-    prefix = _cumsum(pc) - pc
-    ranks = _floyd_ranks(sd, jnp.where(found, m, k), k)  # [S, k]
-    target = jnp.take(prefix, jnp.minimum(first, cap - 1))[:, None] + ranks
-
-    def bisect(_, carry):  # the last item t of the query with prefix[t] <= target
-        lo_t, size = carry
-        half = size // 2
-        mid = jnp.minimum(lo_t + half, cap - 1)
-        go = (half > 0) & (prefix[mid] <= target)
-        return jnp.where(go, mid, lo_t), jnp.where(go, size - half, half)
-
-    lo_t, _ = jax.lax.fori_loop(0, max(cap.bit_length(), 1), bisect,
-                                (jnp.broadcast_to(first[:, None], ranks.shape),
-                                 jnp.broadcast_to(n_q[:, None], ranks.shape)))
-    t = jnp.minimum(lo_t, cap - 1)
-    bit = _select_bit(word[t], target - prefix[t])
-    idx = index.orig[jnp.minimum(item_start[t] + bit, index.orig.shape[0] - 1)]
-    idx = jnp.where(found[:, None], idx, -1)
+    idx = _sample_members(index.orig, words, li, found, m, sd, item_q, item_start, first, n_q, k=k,
+                          steps=max(cap.bit_length(), 1))
     inv = jnp.zeros(n_slots, jnp.int32).at[order].set(jnp.arange(n_slots, dtype=jnp.int32))
     return idx[inv], level.astype(jnp.int32)[inv], m.astype(jnp.int32)[inv], fits, hopeless
 
