@@ -62,7 +62,7 @@ from flax import struct
 from jax.sharding import Mesh, PartitionSpec as P
 
 from lazyq_jax.neighbours.common import (PI, W, Neighbours, _check_params, _items, _member_words, _pick_level,
-                                         _sample_members, _steps, wrap_angle)
+                                         _sample_members, _steps, stable_order, wrap_angle)
 from lazyq_jax.parallel import AXIS, to_host
 
 D = 5  # g-cells per g-block (each point is stored D times)
@@ -167,7 +167,7 @@ def build_index(data_s, data_g, *, k=20, radius_s=0.06, radius_g=0.1, growth=2 *
     ig = np.clip(np.floor((g.astype(np.float64) + np.pi) / h_g), 0, n_g - 1).astype(np.int64)
     # Entry copies: a point with g-cell c lies in g-blocks c-D+1 .. c (block b = cells b..b+D-1).
     # Sort by (y-cell, x-cell) once, then stably by block (a radix sort on small ints).
-    by_yx = np.argsort(iy * n_x + ix, kind="stable")
+    by_yx = stable_order(iy * n_x + ix)
     blocks = ((ig[by_yx, None] - np.arange(D)[None, :]) % n_g).ravel()
     order = np.argsort(blocks.astype(np.int16 if n_g < 2**15 else np.int32), kind="stable")
     src = by_yx[order // D]
@@ -368,7 +368,7 @@ def search_all(index: GridIndex, key, query_s, query_g, *, mesh: Mesh | None = N
     cell = (np.floor((qg + np.pi) * (index.n_g / (2 * np.pi))).astype(np.int64) * index.n_y
             + np.clip(np.floor((qs[:, 1] - index.y0) / index.h_y), 0, index.n_y - 1).astype(np.int64)
             ) * index.n_x + np.clip(np.floor((qs[:, 0] - index.x0) / index.h_x), 0, index.n_x - 1).astype(np.int64)
-    order = np.argsort(cell[:n_real], kind="stable").astype(np.int32)
+    order = stable_order(cell[:n_real]).astype(np.int32)
     # Level at which the radii cover everything: |B| = N there.
     real = qs[:n_real] if n_real else qs[:1]
     lo_x, lo_y = min(real[:, 0].min(), index.x0), min(real[:, 1].min(), index.y0)

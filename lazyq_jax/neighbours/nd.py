@@ -127,7 +127,7 @@ from flax import struct
 from jax.sharding import Mesh, PartitionSpec as P
 
 from lazyq_jax.neighbours.common import (TWO_PI, W, Neighbours, _check_params, _items, _key_words, _member_words,
-                                         _pick_level, _query_seeds, _sample_members, _steps, radius_tables,
+                                         _pick_level, _query_seeds, _sample_members, _steps, radius_tables, stable_order,
                                          wrap_angle)
 from lazyq_jax.parallel import AXIS, put, replicated, sharded, to_host
 
@@ -547,9 +547,9 @@ def _sorted_table(grid, cols):
     block, rest = _data_cells(grid, cols)
     stride = math.prod(ax.n for ax in grid[1:])
     offsets = _offsets(grid, (block * stride + rest[:, None]).ravel())
-    by_rest = np.argsort(rest, kind="stable")
+    by_rest = stable_order(rest)
     if block.shape[1] == 1:
-        return by_rest[np.argsort(block[by_rest, 0], kind="stable")], offsets
+        return by_rest[stable_order(block[by_rest, 0])], offsets
     blocks = block[by_rest].ravel()  # copies of each point adjacent, points in rest order
     order = np.argsort(blocks.astype(np.int16 if grid[0].n_key < 2**15 else np.int32), kind="stable")
     return by_rest[order // block.shape[1]], offsets
@@ -746,7 +746,7 @@ def search_all_nd(index: NDIndex, key, query_s, query_g=None, *, n_queries: int 
         raise ValueError(f"growth={index.growth} is too close to 1: covering the data takes {level_all} "
                          f"growths (more than {MAX_LEVELS})")
     ip, fr, qkey = _query_cells(index.grid, qcols)
-    order = np.argsort(qkey[:n_real], kind="stable").astype(np.int64)
+    order = stable_order(qkey[:n_real])
     out_idx = np.zeros((n_q, k), np.int32)
     out_level = np.zeros(n_q, np.int32)
     out_count = np.zeros(n_q, np.int32)
