@@ -75,8 +75,8 @@ the distances are computed once); per-query counts at every level of a pass are
 popcount sums. The closed-form entry level ``ceil(log_growth(...))`` was not needed:
 with a word per level the exact test is the only level computation. Sampling draws
 ``k`` ranks with Floyd's algorithm and maps each to its member through the prefix of
-popcounts (a binary search in the query's items) and a select-in-word: the shared core
-of :mod:`lazyq_jax.neighbours.common`.
+popcounts (a count in a window of the query's prefixes when it has at most 32 items, else
+a binary search) and a select-in-word: the shared core of :mod:`lazyq_jax.neighbours.common`.
 
 *Host-driven growth* (as :func:`lazyq_jax.neighbours.grid.search_all`): pass 1 tests level
 0 for all queries (sorted by cell key for locality); queries still short of ``k`` are
