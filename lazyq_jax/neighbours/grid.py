@@ -169,7 +169,7 @@ def build_index(data_s, data_g, *, k=20, radius_s=0.06, radius_g=0.1, growth=2 *
     # Sort by (y-cell, x-cell) once, then stably by block (a radix sort on small ints).
     by_yx = stable_order(iy * n_x + ix)
     blocks = ((ig[by_yx, None] - np.arange(D)[None, :]) % n_g).ravel()
-    order = np.argsort(blocks.astype(np.int16 if n_g < 2**15 else np.int32), kind="stable")
+    order = stable_order(blocks)
     src = by_yx[order // D]
     cell = (blocks[order] * n_y + iy[src]) * n_x + ix[src]
     n_cells = n_g * n_y * n_x

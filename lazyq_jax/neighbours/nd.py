@@ -551,7 +551,7 @@ def _sorted_table(grid, cols):
     if block.shape[1] == 1:
         return by_rest[stable_order(block[by_rest, 0])], offsets
     blocks = block[by_rest].ravel()  # copies of each point adjacent, points in rest order
-    order = np.argsort(blocks.astype(np.int16 if grid[0].n_key < 2**15 else np.int32), kind="stable")
+    order = stable_order(blocks)
     return by_rest[order // block.shape[1]], offsets
 
 
