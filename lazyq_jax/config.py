@@ -113,6 +113,9 @@ class TrainConfig:
     ``target_max``: Eq. (7)'s maximum over the action ``"set"`` (the paper's), or over the
     neighbourhood's own actions, ``"data"`` (``alpha + max_j beta . a_j``: an in-sample
     maximum that extrapolates less; ``docs/pointmaze.md``); the policy stays Eq. (9).
+    ``value_init``: where V starts (the last layer's initial bias; 0, the paper's, by
+    default).  ``r_min / (1 - gamma)`` is a pessimistic start: value iteration then raises
+    V from below, along paths the data actually take (``docs/pointmaze.md``).
     """
 
     gamma: float = 0.9
@@ -127,6 +130,7 @@ class TrainConfig:
     resample_neighbours: bool = False
     target_batch_size: int = 65536
     target_max: str = "set"
+    value_init: float = 0.0
 
     def __post_init__(self) -> None:
         _check(self.target_max in ("set", "data"),
@@ -140,6 +144,9 @@ class TrainConfig:
         _check(_is_int(self.depth) and self.depth >= 2,
                f"TrainConfig.depth (number of Dense layers) must be an integer >= 2, got {self.depth!r}")
         _positive(self, "learning_rate")
+        _check(isinstance(self.value_init, (int, float)) and not isinstance(self.value_init, bool)
+               and math.isfinite(self.value_init),
+               f"TrainConfig.value_init must be a finite number, got {self.value_init!r}")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -47,6 +47,9 @@ class ValueNetwork(nn.Module):
     such a bias would get an exactly zero gradient and only drift with rounding
     noise (which Adam scales up to ``learning_rate``-sized steps).
 
+    ``output_init``: the last Dense layer's initial bias, so ``V`` starts near it (a
+    pessimistic start: ``TrainConfig.value_init``).
+
     ``axis_name``: inside ``shard_map`` over a batch split on that mesh axis, batch
     norm averages its statistics over all devices (synchronised batch norm: the
     same statistics as the whole batch on one device).  The parameters do not
@@ -57,6 +60,7 @@ class ValueNetwork(nn.Module):
     depth: int = 9
     state_scale: float | tuple[float, ...] = 1.0
     axis_name: str | None = None
+    output_init: float = 0.0
 
     @nn.compact
     def __call__(self, s: jax.Array, g: jax.Array | None = None, train: bool = False) -> jax.Array:
@@ -66,4 +70,4 @@ class ValueNetwork(nn.Module):
             x = nn.BatchNorm(use_running_average=not train, momentum=0.99,
                              axis_name=self.axis_name if train else None)(x)
             x = nn.relu(x)
-        return nn.Dense(1)(x)[..., 0]
+        return nn.Dense(1, bias_init=nn.initializers.constant(self.output_init))(x)[..., 0]

@@ -143,7 +143,7 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
     scale = np.asarray(state_scale, np.float64)
     if scale.ndim > 1 or not np.all(scale > 0):
         raise ValueError(f"state_scale must be a number > 0 or one per state dimension, got {state_scale!r}")
-    network = ValueNetwork(width=config.width, depth=config.depth,
+    network = ValueNetwork(width=config.width, depth=config.depth, output_init=config.value_init,
                            state_scale=float(scale) if scale.ndim == 0 else tuple(scale.tolist()))
     fixed = (state_dim, goal) if state_dim is not None and goal != "from data" else None
 

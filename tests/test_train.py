@@ -6,9 +6,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from flax import linen as nn
 
 from lazyq_jax.config import TrainConfig
 from lazyq_jax.neighbours import find_neighbours
+from lazyq_jax.networks import encode
 from lazyq_jax.train import make_train
 from lazyq_jax.types import Transitions
 
@@ -52,6 +54,45 @@ def test_train_is_task_agnostic():
     near = v(jnp.asarray(target[:200] * 0.85, jnp.float32), data.g[:200])
     away = v(jnp.asarray(-target[:200], jnp.float32), data.g[:200])
     assert float(jnp.mean(near)) > float(jnp.mean(away)) + 0.1, (jnp.mean(near), jnp.mean(away))
+
+
+class _PlainValueNetwork(nn.Module):
+    """The value network as flax's defaults build it (a zero-initialised output bias): the
+    reference for ``value_init = 0``."""
+
+    width: int
+    depth: int
+
+    @nn.compact
+    def __call__(self, s, g=None, train=False):
+        x = encode(s, g)
+        for _ in range(self.depth - 1):
+            x = nn.relu(nn.BatchNorm(use_running_average=not train, momentum=0.99)(
+                nn.Dense(self.width, use_bias=False)(x)))
+        return nn.Dense(1)(x)[..., 0]
+
+
+def test_value_init_moves_only_the_output_bias():
+    """``value_init`` starts V there: the last bias is that number, every other parameter is
+    the default's (same key), and V is the default's V shifted by it.  The default (0) builds
+    bitwise flax's plain network, so the paper's runs are unchanged."""
+    data, _ = point_task(n=256, d=2, goal="angle")
+    key = jax.random.PRNGKey(3)
+    base = make_train(TrainConfig(width=16, depth=4), 0.1)
+    low = make_train(TrainConfig(width=16, depth=4, value_init=-100.0), 0.1)
+    s0, s1 = base.init(key, data), low.init(key, data)
+    reference = _PlainValueNetwork(16, 4).init(jax.random.split(key)[1], data.s[:1], data.g[:1])
+    assert tree_equal(s0.params, reference["params"])
+    last = f"Dense_{3}"
+    assert float(s1.params[last]["bias"][0]) == -100.0
+    s1_rest = dict(s1.params, **{last: {"kernel": s1.params[last]["kernel"],
+                                        "bias": s0.params[last]["bias"]}})
+    assert tree_equal(s1_rest, s0.params)
+    v0, v1 = base.value_fn(s0)(data.s, data.g), low.value_fn(s1)(data.s, data.g)
+    # |v0| is a few units: the shift's rounding is a few ulps of 100 (7.6e-6 each).
+    np.testing.assert_allclose(np.asarray(v1), np.asarray(v0) - 100.0, rtol=0, atol=1e-4)
+    with pytest.raises(ValueError, match="value_init must be a finite number"):
+        TrainConfig(value_init=float("nan"))
 
 
 def test_sizes_come_from_the_data_and_mismatches_are_named():
