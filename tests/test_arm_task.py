@@ -41,6 +41,18 @@ def test_arm_settings_and_their_errors():
         tasks.get("crane")
 
 
+def test_the_online4x_preset_is_the_measured_setting():
+    """``--preset online4x`` is the setting docs/arm.md measured over 5 seeds
+    (``experiments/arm_levers.py``'s ``online_fingertip_offsets_x4``: the online preset with
+    the paper's 5000 starts, 1200 episodes a round, at most 40,000 moves), on both arms."""
+    lever = ["neighbours.features=fingertip", "neighbours.radius_s=0.06",
+             "neighbours.feature_weight=0.25", "neighbours.local_model=action+state",
+             "collect.n_starts=5000", "online.episodes=1200", "online.max_moves=40000"]
+    for task in ("arm", "arm-long"):
+        assert tasks.preset(task, "online4x") == override(tasks.preset(task, "online"), lever)
+        tasks.get(task).check(tasks.preset(task, "online4x"))
+
+
 def test_arm_long_data_put_the_disk_anywhere_in_the_state():
     cfg = ArmCollectConfig(n_starts=96, n_goals=4, chunk_size=96, disk_range=0.4)
     data = collect_arm(jax.random.PRNGKey(3), cfg, progress=False)
