@@ -114,8 +114,8 @@ class TrainConfig:
     neighbourhood's own actions, ``"data"`` (``alpha + max_j beta . a_j``: an in-sample
     maximum that extrapolates less; ``docs/pointmaze.md``); the policy stays Eq. (9).
     ``value_init``: where V starts (the last layer's initial bias; 0, the paper's, by
-    default).  ``r_min / (1 - gamma)`` is a pessimistic start: value iteration then raises
-    V from below, along paths the data actually take (``docs/pointmaze.md``).
+    default).  ``r_min / (1 - gamma)`` is a pessimistic start: V rises from below (on the
+    maze it still ends above V* at the pairs across walls: ``docs/pointmaze.md``).
     """
 
     gamma: float = 0.9

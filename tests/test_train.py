@@ -83,7 +83,7 @@ def test_value_init_moves_only_the_output_bias():
     s0, s1 = base.init(key, data), low.init(key, data)
     reference = _PlainValueNetwork(16, 4).init(jax.random.split(key)[1], data.s[:1], data.g[:1])
     assert tree_equal(s0.params, reference["params"])
-    last = f"Dense_{3}"
+    last = "Dense_3"  # depth 4: Dense_0..Dense_3
     assert float(s1.params[last]["bias"][0]) == -100.0
     s1_rest = dict(s1.params, **{last: {"kernel": s1.params[last]["kernel"],
                                         "bias": s0.params[last]["bias"]}})
