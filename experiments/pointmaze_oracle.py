@@ -18,6 +18,11 @@ Two measurements on one trained lazy run (its first seed, its data, its neighbou
   other ``k`` and a double estimator, and how far the target extrapolates: ``sum_j |w_j|``
   of the target as a linear function of the neighbours' values.
 
+* **Radius probe** (``--probe-radius``): ``T(V*) - V*`` and ``T(V_line) - V_line`` on the
+  wall pairs by the state's distance from a wall, for the exact Bellman backup (OGBench's
+  env step over a grid of box actions) and for Eq. (8)'s target at other state radii: how
+  much a backup tells the walls-aware value from the straight-line one.
+
 ``V*`` and ``V_line`` are pointmaze_walls.py's (a BFS over a 0.25 grid of free positions;
 accurate to a few steps).
 
@@ -25,6 +30,9 @@ accurate to a few steps).
         --values runs/pm_ogb:gcivl:width=128:steps=114139          # policy and fixed point
     .venv/bin/python experiments/pointmaze_oracle.py runs/pm_goaloff --skip-fixed-point \
         --skip-policy --probe-k 20 40 --out runs/pm_goaloff/probe.json   # the noise probe
+    .venv/bin/python experiments/pointmaze_oracle.py runs/pm_vinit --skip-fixed-point \
+        --skip-policy --probe-radius 0.5 0.25 0.15 0.1 --pairs 100000 \
+        --out runs/pm_vinit/radius_probe.json                          # the radius probe
 """
 
 from __future__ import annotations
@@ -200,6 +208,76 @@ def noise_probe(args, agent, data, seed, n, s, g, geo, gamma, config, v_star_nex
     results["noise_probe"] = out
 
 
+def exact_backup(maze, s, g, wall, clear, geo, gamma, v_star, v_line, grid=11):
+    """The true Bellman backup ``-1 + gamma max_a V(step(s, a), g)`` (OGBench's env step,
+    an ``grid x grid`` grid of box actions) of ``V*`` and ``V_line`` against themselves, on
+    the wall pairs by the state's distance from a wall: what the lazy backup's
+    ``T(V) - V`` (:func:`radius_probe`) would be if its local model saw the walls."""
+    u = np.linspace(-1.0, 1.0, grid)
+    actions = np.stack(np.meshgrid(u, u), -1).reshape(-1, 2)
+    out = {}
+    for lo, hi in itertools.pairwise(CLEARANCE):
+        m = np.flatnonzero(wall & (clear >= lo) & (clear < hi))[:2000]
+        if m.size == 0:
+            continue
+        nxt = maze.step(s[m, None, :], actions[None])          # [rows, A, 2]
+        gg = np.broadcast_to(g[m, None, :], nxt.shape).reshape(-1, 2)
+        flat = nxt.reshape(-1, 2)
+        best_star = value_of(geo.length(flat, gg), gamma).reshape(m.size, -1).max(1)
+        best_line = value_of(np.abs(flat - gg).max(1), gamma).reshape(m.size, -1).max(1)
+        out[f"wall pairs, state {lo}-{hi} from a wall"] = {
+            "rows": int(m.size),
+            "T(V*) - V*": float((-1.0 + gamma * best_star - v_star[m]).mean()),
+            "T(V_line) - V_line": float((-1.0 + gamma * best_line - v_line[m]).mean())}
+    return out
+
+
+def radius_probe(args, agent, data, seed, n, s, g, geo, gamma, config, tables, results):
+    """Which values are fixed points of Eq. (8)'s backup, for other neighbourhood radii:
+    ``T(V*) - V*`` and ``T(V_line) - V_line`` (the walls ignored) at the scored rows, over the
+    wall pairs and by the state's distance from a wall.  Where ``T(V_line) = V_line`` the
+    backup cannot tell the walls from open space: value iteration has no reason to leave
+    the straight-line value.  The true Bellman backup of ``V_line`` is lower next to a wall
+    (a step into it is lost)."""
+    nc = config.neighbours
+    rng = np.random.default_rng(0)
+    rows, v_star, wall = scored_rows(rng, args.pairs, s, g, geo, gamma)
+    v_line = value_of(np.abs(s[rows] - g[rows]).max(1), gamma)
+    clear = clearance(get_maze(config.collect.maze), s[rows])
+    c, action_set = agent.problem.action_length, agent.problem.action_set
+    a_all = jnp.asarray(np.asarray(data.a[:n]))
+    out = {"exact backup": exact_backup(get_maze(config.collect.maze), s[rows], g[rows], wall, clear,
+                                        geo, gamma, v_star, v_line)}
+    print(f"exact backup: {json.dumps(out['exact backup'])}", flush=True)
+    for radius_s, radius_g in itertools.product(args.probe_radius, args.probe_radius_g or [nc.radius_g]):
+        t = time.perf_counter()
+        nb = find_neighbours(purpose_key(seed, "neighbours"), s, g, s[rows], g[rows], k=nc.k,
+                             radius_s=radius_s, radius_g=radius_g, growth=nc.growth)
+        ii = jnp.asarray(nb.idx)
+        model = nc.local_model
+        offsets = None if model == "action" else neighbour_offsets(
+            jnp.asarray(s)[ii], jnp.asarray(s[rows]),
+            jnp.asarray(g)[ii] if model == "action+state+goal" else None,
+            jnp.asarray(g[rows]) if model == "action+state+goal" else None)
+        a_nb = a_all[ii]
+        level = np.asarray(nb.level)
+        key = f"radius_s={radius_s} radius_g={radius_g}"
+        out[key] = entry = {"level0": float((level == 0).mean()), "mean_level": float(level.mean())}
+        for name, ref in (("V* (walls)", v_star), ("V_line (no walls)", v_line)):
+            y_nb = jnp.asarray(tables[name])[ii]
+            alpha, beta = fit_local_linear(a_nb, y_nb, offsets=offsets)
+            over = a_nb if config.train.target_max == "data" else None
+            target, _ = lazy_target(alpha, beta, y_nb, c, True, action_set, over)
+            err = np.asarray(target, np.float64) - ref
+            parts = [("all", np.ones_like(wall)), ("wall pairs", wall)]
+            parts += [(f"wall pairs, state {lo}-{hi} from a wall", wall & (clear >= lo) & (clear < hi))
+                      for lo, hi in itertools.pairwise(CLEARANCE)]
+            entry[name] = {part: {"rows": int(m.sum()), "mean_error": float(err[m].mean())}
+                           for part, m in parts if m.any()}
+        print(f"{key} ({time.perf_counter() - t:.0f} s): {json.dumps(entry)}", flush=True)
+    results["radius_probe"] = out
+
+
 def policy_table(paths) -> None:
     """The policy's success with each value over the seeds of several oracle.json files: mean
     [95 % t interval] of the 5-task success, and each task's mean."""
@@ -233,6 +311,10 @@ def main() -> None:
     p.add_argument("--skip-policy", action="store_true")
     p.add_argument("--probe-k", type=int, nargs="*", default=[],
                    help="neighbourhood sizes for the value-noise probe (none: no probe)")
+    p.add_argument("--probe-radius", type=float, nargs="*", default=[],
+                   help="state radii for the fixed-point probe of V* and V_line (none: no probe)")
+    p.add_argument("--probe-radius-g", type=float, nargs="*", default=[],
+                   help="goal radii for that probe (default: the run's)")
     p.add_argument("--probe-sigma", type=float, nargs="*", default=[0.0, 0.1, 0.2, 0.4])
     p.add_argument("--out", default=None, help="oracle.json (default: RUN_DIR/oracle.json)")
     args = p.parse_args()
@@ -281,6 +363,9 @@ def main() -> None:
 
     if args.probe_k:
         noise_probe(args, agent, data, seed, n, s, g, geo, gamma, config, v_star_next, results)
+
+    if args.probe_radius:
+        radius_probe(args, agent, data, seed, n, s, g, geo, gamma, config, tables, results)
 
     # ---- the policy with each value table
     base = agent.policies(loaded.states, sd.stacked, sd.n_valid)
