@@ -83,6 +83,17 @@ def scored_rows(rng, pairs, s, g, geo, gamma):
     return rows, value_of(d_star, gamma), wall
 
 
+def model_offsets(model, s, g, ii, rows):
+    """The covariates of the local model ``model`` for the neighbourhoods ``ii [rows, k]`` of
+    ``rows``: None (Eq. 4), the state offsets, or the state and goal offsets."""
+    if model == "action":
+        return None
+    with_goal = model == "action+state+goal"
+    return neighbour_offsets(jnp.asarray(s)[ii], jnp.asarray(s[rows]),
+                             jnp.asarray(g)[ii] if with_goal else None,
+                             jnp.asarray(g[rows]) if with_goal else None)
+
+
 def fixed_point(args, agent, data, seed, n, s, g, geo, gamma, config, loaded, tables, results):
     """T V against V* (and the trained V) at sampled rows; see the module docstring."""
     t = time.perf_counter()
@@ -92,13 +103,8 @@ def fixed_point(args, agent, data, seed, n, s, g, geo, gamma, config, loaded, ta
     rng = np.random.default_rng(0)
     rows, v_star, wall = scored_rows(rng, args.pairs, s, g, geo, gamma)
     clear = clearance(get_maze(config.collect.maze), s[rows])
-    model = config.neighbours.local_model
     ii = jnp.asarray(idx[rows])
-    offsets = None
-    if model != "action":
-        offsets = neighbour_offsets(jnp.asarray(s)[ii], jnp.asarray(s[rows]),
-                                    jnp.asarray(g)[ii] if model == "action+state+goal" else None,
-                                    jnp.asarray(g[rows]) if model == "action+state+goal" else None)
+    offsets = model_offsets(config.neighbours.local_model, s, g, ii, rows)
     a_nb = jnp.asarray(np.asarray(data.a[:n]))[ii]
     v_rows_net = np.asarray(agent.value_fn(loaded.state())(jnp.asarray(s[rows]), jnp.asarray(g[rows])), np.float64)
     gap = v_rows_net - v_star
@@ -243,22 +249,18 @@ def radius_probe(args, agent, data, seed, n, s, g, geo, gamma, config, tables, r
     rng = np.random.default_rng(0)
     rows, v_star, wall = scored_rows(rng, args.pairs, s, g, geo, gamma)
     v_line = value_of(np.abs(s[rows] - g[rows]).max(1), gamma)
-    clear = clearance(get_maze(config.collect.maze), s[rows])
+    maze = get_maze(config.collect.maze)
+    clear = clearance(maze, s[rows])
     c, action_set = agent.problem.action_length, agent.problem.action_set
     a_all = jnp.asarray(np.asarray(data.a[:n]))
-    out = {"exact backup": exact_backup(get_maze(config.collect.maze), s[rows], g[rows], wall, clear,
-                                        geo, gamma, v_star, v_line)}
+    out = {"exact backup": exact_backup(maze, s[rows], g[rows], wall, clear, geo, gamma, v_star, v_line)}
     print(f"exact backup: {json.dumps(out['exact backup'])}", flush=True)
     for radius_s, radius_g in itertools.product(args.probe_radius, args.probe_radius_g or [nc.radius_g]):
         t = time.perf_counter()
         nb = find_neighbours(purpose_key(seed, "neighbours"), s, g, s[rows], g[rows], k=nc.k,
                              radius_s=radius_s, radius_g=radius_g, growth=nc.growth)
         ii = jnp.asarray(nb.idx)
-        model = nc.local_model
-        offsets = None if model == "action" else neighbour_offsets(
-            jnp.asarray(s)[ii], jnp.asarray(s[rows]),
-            jnp.asarray(g)[ii] if model == "action+state+goal" else None,
-            jnp.asarray(g[rows]) if model == "action+state+goal" else None)
+        offsets = model_offsets(nc.local_model, s, g, ii, rows)
         a_nb = a_all[ii]
         level = np.asarray(nb.level)
         key = f"radius_s={radius_s} radius_g={radius_g}"
