@@ -55,6 +55,17 @@ VARIANTS = {
     # the fingertip relative to the disk alone (no joint angles in the search space)
     "fingertip_offsets_w0": AT_TIP[:2] + ["neighbours.feature_weight=0"] + OFFSETS,
     "fingertip_move0.06": FINGERTIP + ["collect.arm.action_length=0.06"],
+    # where the data starts: the fingertip within 0.6 of the disk (the long-horizon task's
+    # start box, Fig. 5's 1.2 x 1.2) instead of 1.0; protocol A keeps its own 1.0 box
+    "fingertip_offsets_box0.6": FINGERTIP_OFFSETS + ["collect.arm.start_range=0.6"],
+    "fingertip_offsets_box0.6_x4": FINGERTIP_OFFSETS + ["collect.arm.start_range=0.6",
+                                                        "collect.n_starts=20000"],
+    # arm-long only: the data's disk within the long-horizon task's 0.3 (eval.long_range)
+    "fingertip_offsets_box0.6_disk0.3": FINGERTIP_OFFSETS + ["collect.arm.start_range=0.6",
+                                                             "collect.disk_range=0.3"],
+    "fingertip_offsets_box0.6_disk0.3_x4": FINGERTIP_OFFSETS + ["collect.arm.start_range=0.6",
+                                                                "collect.disk_range=0.3",
+                                                                "collect.n_starts=20000"],
     # the online preset: 2500 random starts, then 5 rounds of the agent's pushes, 20,000 moves
     "online_fingertip_offsets": FINGERTIP_OFFSETS,
     # 4x the paper's moves: the paper's 5000 random starts, then 5 rounds of the agent's pushes

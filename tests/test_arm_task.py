@@ -13,7 +13,7 @@ from lazyq_jax.neighbours.nd import membership_level_reference
 from lazyq_jax.types import Transitions
 from lazyq_jax.config import ConfigError, override
 from lazyq_jax.tasks.arm import ArmCollectConfig, ArmConfig, ArmEnv, ArmEvalConfig, collect_arm, fingertip_xy
-from lazyq_jax.tasks.arm.episodes import protocol_b
+from lazyq_jax.tasks.arm.episodes import protocol_a, protocol_b
 from lazyq_jax.tasks.base import CORRECT, NOT_PUSHED, WRONG, run_protocol, seed_acts
 
 ARM = ArmConfig()
@@ -30,8 +30,8 @@ def test_arm_settings_and_their_errors():
     tasks.get("arm-long").check(config)
     with pytest.raises(ConfigError, match="exceeds collect.disk_range"):
         tasks.get("arm-long").check(override(config, ["eval.long_range=0.5"]))
-    with pytest.raises(ConfigError, match="unknown config field 'eval.start_range'"):
-        override(config, ["eval.start_range=0.5"])  # the finger's field: the arm has none
+    with pytest.raises(ConfigError, match="start_range"):
+        override(config, ["eval.start_range=0"])
     # arm-long is the arm with the disk in the state: one task class, two presets
     arm = override(tasks.preset("arm"), ["collect.disk_range=0.4"])
     assert arm.collect == config.collect
@@ -137,3 +137,23 @@ def test_the_fingertip_feature_map_and_the_search_in_it():
     plain = agents.make("lazy", lazy_cfg, problem=Problem(0.12)).prepare(0, trans, 300, 0)
     same = agents.make("lazy", lazy_cfg, problem=Problem(0.12, features=lambda v: v)).prepare(0, trans, 300, 0)
     np.testing.assert_array_equal(np.asarray(plain.idx), np.asarray(same.idx))
+
+
+def test_protocol_a_starts_in_its_own_box_whatever_box_the_data_used():
+    """``eval.start_range`` bounds protocol A's fingertip starts (the paper's 1.0 by default);
+    the data's ``collect.arm.start_range`` does not move them: the same episodes bitwise."""
+    still = seed_acts(lambda p: lambda k, s, g: jnp.zeros((s.shape[0], 3)))
+    cfg = ArmEvalConfig(n_directions=4, episodes_per_direction=16, max_steps=1)
+
+    def starts(eval_cfg, data_box):
+        arm = ArmConfig(start_range=data_box)
+        program = protocol_a(ArmEnv(arm), eval_cfg, ArmCollectConfig(arm=arm))
+        ro = run_protocol(program, still, jnp.zeros(1), jax.random.PRNGKey(2)[None])
+        return np.asarray(ro.agent[0, 0])  # [episodes, 2] fingertips at the start
+
+    paper = starts(cfg, 1.0)
+    np.testing.assert_array_equal(starts(cfg, 0.6), paper)  # the data's box is set apart
+    assert np.abs(paper).max() <= 1.0 and np.abs(paper).max() > 0.6  # the whole box is used
+    near = starts(ArmEvalConfig(n_directions=4, episodes_per_direction=16, max_steps=1,
+                                start_range=0.6), 1.0)
+    assert np.abs(near).max() <= 0.6 and (np.linalg.norm(near, axis=1) > ARM.contact_distance).all()

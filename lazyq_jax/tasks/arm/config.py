@@ -67,8 +67,10 @@ class ArmEvalConfig:
 
     Protocol A: ``n_directions`` goals evenly spaced from 0, ``episodes_per_direction``
     episodes of at most ``max_steps`` joint moves; the disk at the origin, the arm from
-    a random collision-free start with the fingertip behind the disk.  Outcomes as the
-    push task's.  Long horizon: ``long_rollouts`` rollouts of at most
+    a random collision-free start with the fingertip behind the disk and within
+    ``start_range`` of it (the paper's ``[-1, 1]^2``, as the finger's; the data's start box
+    is ``collect.arm.start_range``, set apart).  Outcomes as the push task's.
+    Long horizon: ``long_rollouts`` rollouts of at most
     ``long_max_steps`` moves, disk and target uniform in ``[-long_range,
     long_range]^2`` (at most ``collect.disk_range``: the data must have seen the disk
     there), the fingertip within ``long_finger_box`` of the disk; success within
@@ -79,6 +81,7 @@ class ArmEvalConfig:
     n_directions: int = 16
     episodes_per_direction: int = 20
     max_steps: int = 50
+    start_range: float = 1.0
     long_rollouts: int = 100
     long_max_steps: int = 300
     long_range: float = 0.3
@@ -89,7 +92,7 @@ class ArmEvalConfig:
         _counts(self, "n_directions", "episodes_per_direction", "max_steps", "long_rollouts",
                 "long_max_steps")
         _counts(self, "seed", minimum=0)
-        _positive(self, "long_range", "long_finger_box", "success_radius")
+        _positive(self, "start_range", "long_range", "long_finger_box", "success_radius")
 
 
 def check(config: Config) -> None:

@@ -107,17 +107,19 @@ def protocol_a(env: ArmEnv, cfg: ArmEvalConfig, collect: ArmCollectConfig) -> Pr
     ``cfg.n_directions`` goals, ``cfg.episodes_per_direction`` episodes each.
 
     Starts: :func:`sample_arm_start` conditioned on the fingertip being behind the disk
-    (``fingertip . goal_direction < 0``), as the finger's; outcomes as the finger's
+    (``fingertip . goal_direction < 0``) and within ``cfg.start_range`` of it, as the
+    finger's (whatever box the data started in); outcomes as the finger's
     (:func:`lazyq_jax.tasks.push.protocols.direction_outcome`).  The rollouts draw the
     fingertip (``agent``) and keep the joint angles (``extra``).
     """
     arm = env.config
+    starts = dataclasses.replace(arm, start_range=cfg.start_range)
     goals = jnp.repeat(directions(cfg.n_directions), cfg.episodes_per_direction)
 
     def start(key):
         def one(k, g):
             behind = lambda q: fingertip_xy(q, arm) @ jnp.stack([jnp.cos(g), jnp.sin(g)]) < 0
-            return sample_arm_start(k, arm, extra=behind)
+            return sample_arm_start(k, starts, extra=behind)
 
         q0 = jax.vmap(one)(jax.random.split(key, goals.shape[0]), goals)
         return env.reset(q0), goals, jnp.zeros(goals.shape, bool)
