@@ -32,9 +32,14 @@ def test_arm_settings_and_their_errors():
         tasks.get("arm-long").check(override(config, ["eval.long_range=0.5"]))
     with pytest.raises(ConfigError, match="start_range"):
         override(config, ["eval.start_range=0"])
-    # arm-long is the arm with the disk in the state: one task class, two presets
-    arm = override(tasks.preset("arm"), ["collect.disk_range=0.4"])
-    assert arm.collect == config.collect
+    # arm-long is the arm with the disk in the state: one task class, two presets; its data
+    # start in its long-horizon task's boxes (disk within 0.3, fingertip within 0.6 of it),
+    # protocol A in the paper's 1.0 box as the arm's
+    arm = override(tasks.preset("arm"), ["collect.disk_range=0.3", "collect.arm.start_range=0.6"])
+    assert arm.collect == config.collect and arm.eval == config.eval
+    assert config.collect.disk_range == config.eval.long_range == 0.3
+    assert config.collect.arm.start_range == config.eval.long_finger_box == 0.6
+    assert config.eval.start_range == tasks.preset("arm").collect.arm.start_range == 1.0
     assert tasks.get("arm").rates[-1][0] == "overall_correct_rate"  # no long horizon without the disk
     assert tasks.get("arm-long").rates[-1][0] == "long_horizon_success_rate"
     with pytest.raises(ConfigError, match="unknown task 'crane'; known tasks: push, arm, arm-long"):

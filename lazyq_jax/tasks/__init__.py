@@ -15,7 +15,7 @@ from lazyq_jax.tasks.push import PushTask
 TASKS: dict[str, Task] = {
     "push": PushTask(),
     "arm": ArmTask("arm", disk_range=None),
-    "arm-long": ArmTask("arm-long", disk_range=0.4),
+    "arm-long": ArmTask("arm-long", disk_range=0.3, start_range=0.6),
     "pointmaze": PointMazeTask(),
 }
 

@@ -39,16 +39,17 @@ __all__ = ["ArmCollectConfig", "ArmConfig", "ArmEnv", "ArmEvalConfig", "ArmState
 
 
 class ArmTask(Task):
-    """``arm`` (``disk_range=None``) or ``arm-long`` (the disk anywhere within 0.4)."""
+    """``arm`` (``disk_range=None``) or ``arm-long`` (the disk anywhere within
+    ``disk_range``); the data's fingertip starts within ``start_range`` of the disk."""
 
     collect_config = ArmCollectConfig
     eval_config = ArmEvalConfig
     directions = True
     online = True
 
-    def __init__(self, name: str, disk_range: float | None):
+    def __init__(self, name: str, disk_range: float | None, start_range: float = 1.0):
         self.name = name
-        self.presets = presets(disk_range)
+        self.presets = presets(disk_range, start_range)
         self.summary = ("a 3-link arm pushing the disk in joint space, the disk at the origin (d_s = 3)"
                         if disk_range is None else
                         "the arm with the disk anywhere, in the state (d_s = 5); long-horizon task")

@@ -119,15 +119,21 @@ _SMOKE = dict(train=TrainConfig(cycles=3, epochs=2, batch_size=256, width=32, ta
 _SMOKE_EVAL = dict(n_directions=4, episodes_per_direction=4, long_rollouts=4, long_max_steps=60)
 
 
-def presets(disk_range: float | None) -> dict[str, Config]:
+def presets(disk_range: float | None, start_range: float = 1.0) -> dict[str, Config]:
     """``paper`` (the paper's scale: 5000 starts x 2 moves x 100 goals, 10 x 10 cycles),
     ``online`` (round 0 of 2500 starts, then 5 rounds of the agent's own pushes, at most
     20,000 simulated moves), ``online4x`` (round 0 of the paper's 5000 starts, then 5 rounds
     of 1200 episodes, at most 40,000 simulated moves: the arm's best measured setting,
-    docs/arm.md; ~30 minutes a seed on 2 CPU cores) and ``smoke`` (a tiny end-to-end run)."""
+    docs/arm.md; ~30 minutes a seed on 2 CPU cores) and ``smoke`` (a tiny end-to-end run).
+
+    ``disk_range``: ``None`` for ``arm``; arm-long's 0.3 is its long-horizon task's range.
+    ``start_range``: the box around the disk the data's fingertip starts in (the arm's
+    ``start_range``): the paper finger's 1.0 for ``arm`` (protocol A starts there too);
+    0.6 for ``arm-long``, its long-horizon task's start box, where three times as many of
+    the random moves push the disk (docs/arm.md: "Where the data starts")."""
     name = "arm" if disk_range is None else "arm-long"
     neighbours = _NEIGHBOURS if disk_range is None else dataclasses.replace(_NEIGHBOURS, max_level=10)
-    collect = ArmCollectConfig(disk_range=disk_range)
+    collect = ArmCollectConfig(arm=ArmConfig(start_range=start_range), disk_range=disk_range)
     paper = Config(task=name, collect=collect, eval=ArmEvalConfig(), neighbours=neighbours)
     return {
         "paper": paper,
