@@ -32,6 +32,8 @@ def test_arm_settings_and_their_errors():
         tasks.get("arm-long").check(override(config, ["eval.long_range=0.5"]))
     with pytest.raises(ConfigError, match="start_range"):
         override(config, ["eval.start_range=0"])
+    with pytest.raises(ConfigError, match="eval.start_range=0.3 must exceed the fingertip-disk contact"):
+        tasks.get("arm").check(override(tasks.preset("arm"), ["eval.start_range=0.3"]))
     # arm-long is the arm with the disk in the state: one task class, two presets; its data
     # start in its long-horizon task's boxes (disk within 0.3, fingertip within 0.6 of it),
     # protocol A in the paper's 1.0 box as the arm's

@@ -101,6 +101,9 @@ def check(config: Config) -> None:
         _check(e.long_range <= c.disk_range,
                f"eval.long_range={e.long_range} exceeds collect.disk_range={c.disk_range}: the "
                "data would never have seen the disk there")
+    _check(e.start_range > c.arm.contact_distance + c.arm.start_margin,
+           f"eval.start_range={e.start_range} must exceed the fingertip-disk contact distance "
+           f"{c.arm.contact_distance} + start margin: protocol A could not start anywhere")
     _check(e.long_finger_box > c.arm.contact_distance + c.arm.start_margin,
            f"eval.long_finger_box={e.long_finger_box} must exceed the fingertip-disk contact "
            f"distance {c.arm.contact_distance} + start margin")
@@ -129,7 +132,7 @@ def presets(disk_range: float | None, start_range: float = 1.0) -> dict[str, Con
     ``disk_range``: ``None`` for ``arm``; arm-long's 0.3 is its long-horizon task's range.
     ``start_range``: the box around the disk the data's fingertip starts in (the arm's
     ``start_range``): the paper finger's 1.0 for ``arm`` (protocol A starts there too);
-    0.6 for ``arm-long``, its long-horizon task's start box, where three times as many of
+    0.6 for ``arm-long``, its long-horizon task's start box, where 2.6 times as many of
     the random moves push the disk (docs/arm.md: "Where the data starts")."""
     name = "arm" if disk_range is None else "arm-long"
     neighbours = _NEIGHBOURS if disk_range is None else dataclasses.replace(_NEIGHBOURS, max_level=10)
