@@ -35,7 +35,13 @@ def _centred(actions, weights):
         w = jnp.asarray(weights, actions.dtype)
     sw = jnp.maximum(w.sum(-1), TINY)
     a_mean = jnp.einsum("...k,...ka->...a", w, actions) / sw[..., None]
-    return w, sw, a_mean, actions - a_mean[..., None, :]
+    # A column equal for every counted neighbour (e.g. one move's copies with other goals)
+    # is centred to exactly 0: its float32 mean can be off by an ulp (0.1 is not a float),
+    # and the normalised system would read that rounding as a direction.
+    counted = (w > 0)[..., None]
+    equal = (jnp.max(jnp.where(counted, actions, -jnp.inf), axis=-2)
+             == jnp.min(jnp.where(counted, actions, jnp.inf), axis=-2))
+    return w, sw, a_mean, jnp.where(equal[..., None, :], 0.0, actions - a_mean[..., None, :])
 
 
 def _regularised_inverse(cov):
@@ -182,6 +188,17 @@ def greedy_action(beta, action_length, action_set: str = "ball"):
     sq = jnp.sum(beta * beta, axis=-1, keepdims=True)
     pos = sq > 0
     return jnp.where(pos, action_length * beta * jax.lax.rsqrt(jnp.where(pos, sq, 1.0)), 0.0)
+
+
+def boundary_action(key, shape, action_length, action_set: str = "ball"):
+    """Actions drawn uniformly from the boundary of the action set, ``[..., n_a]`` of
+    ``shape``: a direction uniform on the sphere times ``c`` (``"ball"``), a uniform corner
+    ``c (+-1, ..., +-1)`` (``"box"``).  Where Eq. (9)'s argmax is the whole set (``beta = 0``)
+    these are the maximisers :func:`greedy_action` would pick for a random ``beta``."""
+    if action_set == "box":
+        return action_length * jax.random.rademacher(key, shape, jnp.float32)
+    d = jax.random.normal(key, shape, jnp.float32)
+    return action_length * d / safe_norm(d)[..., None]
 
 
 def max_linear(beta, action_length, action_set: str = "ball"):

@@ -95,6 +95,17 @@ def test_degenerate_neighbourhoods_are_finite_with_ridge_behaviour():
     alpha, beta = fit_local_linear(same, v)
     np.testing.assert_allclose(beta, 0.0)
     np.testing.assert_allclose(alpha, v.mean())
+    # Equal actions whose float32 mean rounds (0.1 is not a float): still exactly beta = 0,
+    # weighted or not, and with state offsets beside them (the offsets' coefficients fitted).
+    for k in (3, 7, 20, 33):
+        tenth = np.tile(np.float32([0.1, -0.3]), (k, 1))
+        vk = np.random.default_rng(k).normal(size=k).astype(np.float32)
+        np.testing.assert_array_equal(fit_local_linear(tenth, vk)[1], 0.0)
+        wk = np.random.default_rng(k + 1).uniform(0.1, 1, k).astype(np.float32)
+        np.testing.assert_array_equal(fit_local_linear(tenth, vk, wk)[1], 0.0)
+        off = np.random.default_rng(k + 2).normal(size=(k, 2)).astype(np.float32)
+        np.testing.assert_array_equal(fit_local_linear(tenth, vk, offsets=off)[1], 0.0)
+        np.testing.assert_array_equal(np.asarray(precompute_projection(tenth))[1:], 0.0)
     # Two distinct actions (rank 1): within ~1% of the minimum-norm lstsq solution.
     two = np.where(np.arange(20)[:, None] < 10, [[0.0, 0.0]], [[0.1, 0.1]]).astype(np.float32)
     v2 = np.where(np.arange(20) < 10, 1.0, 2.0).astype(np.float32)
