@@ -50,6 +50,7 @@ def _positive(obj: Any, *names: str) -> None:
 
 LOCAL_MODELS = ("action", "action+state", "action+state+goal")
 FIT_WEIGHTS = ("uniform", "epanechnikov")
+NO_MODEL_ACTIONS = ("zero", "random")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,7 +74,14 @@ class NeighbourConfig:
     with ``(1 - d_s^2 / R_s^2)(1 - d_g^2 / R_g^2)``, ``d`` a neighbour's distance from the
     centre in the search space and ``R`` the radii of its neighbourhood's level: the
     nearest neighbours count most, so the fit is more local than the ball).  The tasks set
-    the radii of their own spaces (e.g. radians in joint space)."""
+    the radii of their own spaces (e.g. radians in joint space).
+    ``no_model_action``: what a policy step does where the local model prefers no action
+    (no neighbourhood within ``max_level`` growths, or every neighbour took the same
+    action, so Eq. 6's ``beta = 0`` and Eq. 9's argmax is the whole action set):
+    ``"zero"`` (the centre of the action set, the paper's tie) or ``"random"`` (an action
+    of the set's boundary drawn from the step's key: a uniform direction of the ball, a
+    uniform corner of the box).  Under deterministic dynamics the zero action is a fixed
+    point: the next step asks the same query, and the episode stays there."""
 
     k: int = 20
     radius_s: float = 0.06
@@ -84,10 +92,14 @@ class NeighbourConfig:
     feature_weight: float = 0.25
     local_model: str = "action"
     fit_weights: str = "uniform"
+    no_model_action: str = "zero"
 
     def __post_init__(self) -> None:
         _check(self.fit_weights in FIT_WEIGHTS,
                f"NeighbourConfig.fit_weights must be one of {FIT_WEIGHTS}, got {self.fit_weights!r}")
+        _check(self.no_model_action in NO_MODEL_ACTIONS,
+               f"NeighbourConfig.no_model_action must be one of {NO_MODEL_ACTIONS}, "
+               f"got {self.no_model_action!r}")
         _check(isinstance(self.features, str) and bool(self.features),
                f"NeighbourConfig.features must be a feature map's name, got {self.features!r}")
         _check(isinstance(self.feature_weight, (int, float)) and not isinstance(self.feature_weight, bool)

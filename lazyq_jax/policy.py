@@ -8,7 +8,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from lazyq_jax.local_model import epanechnikov_weights, fit_local_linear, greedy_action, neighbour_offsets
+from lazyq_jax.local_model import (boundary_action, epanechnikov_weights, fit_local_linear, greedy_action,
+                                   neighbour_offsets)
 from lazyq_jax.neighbours.query import PolicyIndex, build_policy_index, query_policy
 from lazyq_jax.targets import bootstrap_table
 from lazyq_jax.types import Transitions
@@ -40,6 +41,8 @@ class LazyPolicy:
     states: jax.Array | None = None  # [N, d_s] the dataset's states, for state-offset local models
     goals: jax.Array | None = None  # the dataset's goals, for goal-offset local models
     kernel: FitKernel | None = None  # distance-weighted local fits (None: the paper's least squares)
+    # where the local model prefers no action: "zero" or "random" (NeighbourConfig.no_model_action)
+    no_model_action: str = struct.field(pytree_node=False, default="zero")
 
 
 def policy_index(data_s, data_g, *, k: int, radius_s: float, radius_g: float, growth: float,
@@ -55,18 +58,23 @@ def policy_index(data_s, data_g, *, k: int, radius_s: float, radius_g: float, gr
 
 def make_lazy_policy(value_fn: Callable, data: Transitions, *, gamma: float, action_length: float,
                      action_set: str = "ball", k: int = 20, radius_s: float = 0.06,
-                     radius_g: float = 0.1, growth: float = 2 ** (1 / 3), max_level: int = 8) -> LazyPolicy:
+                     radius_g: float = 0.1, growth: float = 2 ** (1 / 3), max_level: int = 8,
+                     no_model_action: str = "zero") -> LazyPolicy:
     """Precompute what the policy needs from a trained ``value_fn(s, g)`` and its dataset.
 
     The neighbourhood semantics are those of training (§V-A-2); ``max_level`` bounds
-    the growths a policy query may use (see :func:`lazy_policy`).  Any space: states
+    the growths a policy query may use, ``no_model_action`` what a step does where the
+    local model prefers no action (see :func:`lazy_policy`).  Any space: states
     ``[N, d_s]``, goals ``[N]`` (angles), ``[N, d_g]`` or ``None``; the index is the bounded
     per-step query of :mod:`lazyq_jax.neighbours.query`.
     """
     index = policy_index(data.s, data.g, k=k, radius_s=radius_s, radius_g=radius_g, growth=growth,
                          max_level=max_level)
     values = jax.jit(bootstrap_table, static_argnums=(0,))(value_fn, data, gamma)
-    return LazyPolicy(index, data.a, values, jnp.float32(action_length), action_set)
+    if no_model_action not in ("zero", "random"):
+        raise ValueError(f"no_model_action must be 'zero' or 'random', got {no_model_action!r}")
+    return LazyPolicy(index, data.a, values, jnp.float32(action_length), action_set,
+                      no_model_action=no_model_action)
 
 
 def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):
@@ -79,7 +87,11 @@ def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):
     the maximiser of ``beta . a`` over the
     action set (:func:`lazyq_jax.local_model.greedy_action`).  Pure and jittable (use
     it inside ``lax.scan`` rollouts).  A query with no neighbourhood within
-    ``max_level`` growths (far outside the data) gets the zero action and ``found = False``.
+    ``max_level`` growths (far outside the data) has ``found = False``.  Where the model prefers no action (no neighbourhood, or ``beta = 0``: every neighbour
+    took the same action) the action is zero, or with ``policy.no_model_action ==
+    "random"`` a random action of the set's boundary
+    (:func:`lazyq_jax.local_model.boundary_action`) drawn from ``fold_in(key, 1)``: the
+    neighbour query keeps ``key``, so every other step is the same in both modes.
 
     Returns ``(actions[B, n_a], beta[B, n_a], found[B])``.
     """
@@ -96,6 +108,11 @@ def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):
                                        None if kn.goals is None else g, nb.level,
                                        radius_s=kn.radius_s, radius_g=kn.radius_g, growth=kn.growth)
     _, beta = fit_local_linear(policy.actions[rows], policy.values[rows], weights, offsets=offsets)
-    action = greedy_action(beta, policy.action_length, policy.action_set)
     found = nb.level >= 0
-    return jnp.where(found[:, None], action, 0.0), beta, found
+    action = jnp.where(found[:, None], greedy_action(beta, policy.action_length, policy.action_set), 0.0)
+    if policy.no_model_action == "random":
+        undecided = jnp.all(action == 0, axis=-1)
+        draw = boundary_action(jax.random.fold_in(key, 1), action.shape, policy.action_length,
+                               policy.action_set)
+        action = jnp.where(undecided[:, None], draw, action)
+    return action, beta, found

@@ -17,7 +17,8 @@ Acting: ``policies(states, data, n_valid)`` turns trained states (stacked over s
 into what acting needs (lazy Q: its dataset's index and values; a baseline: the state
 itself), and ``act(policy) -> act(key, s[B, d_s], g) -> actions [B, n_a]`` is pure,
 deterministic for the learned baselines and never NaN.  A zero action means "no
-move" (lazy Q: no neighbourhood within ``neighbours.max_level`` growths).
+move" (lazy Q with ``neighbours.no_model_action="zero"``: no neighbourhood within
+``neighbours.max_level`` growths, or every neighbour took the same action).
 """
 
 from __future__ import annotations

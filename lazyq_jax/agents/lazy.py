@@ -10,8 +10,9 @@ action value model Q(s, a, g) ~ alpha + beta.a (Eq. 4), behind the agent interfa
   targets of Eq. (11) (or Eq. 13 with ``train.double_dqn``) from the network frozen at
   the start of the cycle, then ``train.epochs`` epochs of Adam on Eq. (10).
 * ``act``: Eq. (9), the greedy action of the local fit over the dataset
-  (:func:`lazyq_jax.policy.lazy_policy`); no neighbourhood within
-  ``neighbours.max_level`` growths gives the zero action.
+  (:func:`lazyq_jax.policy.lazy_policy`); where the local model prefers no action (no
+  neighbourhood within ``neighbours.max_level`` growths, or ``beta = 0``) the zero action,
+  or a random one (``neighbours.no_model_action``).
 """
 
 from __future__ import annotations
@@ -187,7 +188,7 @@ class LazyAgent(Agent):
             x = jnp.stack([jnp.asarray(x, jnp.float32) for x in xs])
             kernel = FitKernel(x, data.g, nc.radius_s, nc.radius_g, nc.growth)
         return LazyPolicy(index, data.a, values, length, self.problem.action_set, self.problem.features,
-                          states, goals, kernel)
+                          states, goals, kernel, nc.no_model_action)
 
     def act(self, policy: LazyPolicy):
         return lambda key, s, g: lazy_policy(policy, key, s, g)[0]

@@ -37,7 +37,8 @@ class Rollouts(NamedTuple):
     """Batched episodes: ``agent [T + 1, B, d]`` (what the task draws of the agent, e.g. the
     finger or the fingertip), ``obj [T + 1, B, 2]`` (the object it moves, e.g. the disk),
     ``outcome [B]`` (:data:`CORRECT` / :data:`WRONG` / :data:`NOT_PUSHED`), ``steps [B]``
-    taken, ``idle [B]`` steps whose action was zero (lazy Q: no neighbourhood),
+    taken, ``idle [B]`` steps whose action was zero (lazy Q: no local model that prefers
+    an action, unless ``neighbours.no_model_action="random"`` moves there),
     ``extra``: what else the task keeps (e.g. the arm's joint angles ``[T + 1, B, 3]``), and
     ``ctx``: the protocol's per-episode context (e.g. goals, or the targets ``[B, 2]``)."""
 

@@ -1,0 +1,98 @@
+"""Acting options of trained lazy Q runs against each other: the same checkpoints, datasets and
+evaluation episodes, only how the policy acts changes (``neighbours.no_model_action``,
+``neighbours.max_level``: options of the policy step, not of training).  Trains nothing.
+
+For each value of ``--option`` every run directory's lazy Q is evaluated again by its task
+(the run's own evaluation keys); the table gives the mean [95 % CI] over all seeds of all
+directories, the run's stored ``eval.json`` beside them (the code it was evaluated with), and
+each value's paired difference to the first value.  The idle steps (zero actions: where the
+policy has no model that prefers an action and acts with the zero action) are counted too.
+
+    .venv/bin/python experiments/policy_options.py \\
+        runs/arm_levers/arm-long/fingertip_offsets_box0.6_disk0.3_x4 \\
+        runs/arm_levers_s34/arm-long/fingertip_offsets_box0.6_disk0.3_x4 \\
+        --option neighbours.no_model_action --values zero random
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from lazyq_jax.config import override
+from lazyq_jax.run import load_run
+from lazyq_jax.stats import format_ci, t_interval
+
+POLICY_OPTIONS = ("neighbours.no_model_action", "neighbours.max_level")
+
+
+def idle_steps(result: dict) -> int:
+    """The zero actions of one seed's evaluation, over its protocols."""
+    return sum(int(v.get("idle_steps", 0)) for v in result.values() if isinstance(v, dict))
+
+
+def evaluate_with(run_dir: Path, option: str, value: str) -> list[dict]:
+    """Every seed of ``run_dir``'s lazy Q evaluated with ``option=value``."""
+    loaded = load_run(run_dir, "lazy")
+    agent = loaded.agent
+    changed = override(loaded.config, [f"{option}={value}"])
+    # the option changes acting only: the trained states and the trainer stay as loaded
+    agent.config = dataclasses.replace(agent.config, neighbours=changed.neighbours)
+    policies = agent.policies(loaded.states, loaded.data.stacked, loaded.data.n_valid)
+    ev = loaded.task.evaluate(agent.act, policies, changed, loaded.seeds)
+    rows = []
+    for result in ev.per_seed:
+        rates = loaded.task.seed_rates(result)
+        rows.append({"run": str(run_dir), "seed": result["seed"], **rates, "idle_steps": idle_steps(result)})
+    return rows
+
+
+def stored_rows(run_dir: Path) -> list[dict]:
+    """The run's own ``lazy/eval.json`` as rows (the code it was evaluated with)."""
+    loaded = load_run(run_dir, "lazy")
+    stored = json.loads((run_dir / "lazy" / "eval.json").read_text())["per_seed"]
+    return [{"run": str(run_dir), "seed": r["seed"], **loaded.task.seed_rates(r), "idle_steps": idle_steps(r)}
+            for r in stored]
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("run_dirs", type=Path, nargs="+")
+    ap.add_argument("--option", choices=POLICY_OPTIONS, default="neighbours.no_model_action")
+    ap.add_argument("--values", nargs="+", default=["zero", "random"])
+    ap.add_argument("--out", type=Path, help="JSON file (default: FIRST_RUN_DIR/policy_options.json)")
+    args = ap.parse_args()
+    table = {"stored eval.json": [row for d in args.run_dirs for row in stored_rows(d)]}
+    for value in args.values:
+        t = time.perf_counter()
+        table[f"{args.option}={value}"] = [row for d in args.run_dirs for row in evaluate_with(d, args.option, value)]
+        print(f"{args.option}={value}: evaluated in {time.perf_counter() - t:.0f} s", flush=True)
+    out = args.out or args.run_dirs[0] / "policy_options.json"
+    out.write_text(json.dumps(table, indent=1))
+    keys = [k for k in table[next(iter(table))][0] if k.endswith("_rate") and "per_direction" not in k]
+    first = f"{args.option}={args.values[0]}"
+    n = len(table[first])
+    print(f"\n{n} seeds ({', '.join(str(d) for d in args.run_dirs)}); mean [95 % CI]; idle steps summed")
+    print("| acting | " + " | ".join(keys) + " | idle steps |")
+    print("|---|" + "---|" * (len(keys) + 1))
+    for name, rows in table.items():
+        cells = [format_ci(t_interval([r[k] for r in rows])) for k in keys]
+        print(f"| {name} | " + " | ".join(cells) + f" | {sum(r['idle_steps'] for r in rows)} |")
+    for name, rows in table.items():
+        if name in (first, "stored eval.json"):
+            continue
+        diffs = [format_ci(t_interval([r[k] - b[k] for r, b in zip(rows, table[first])], bounds=None))
+                 for k in keys]
+        print(f"| {name} - {first} (paired) | " + " | ".join(diffs) + " | |")
+    for name, rows in table.items():
+        print(f"{name}: per seed " + "; ".join(
+            f"{r['seed']}: " + " / ".join(f"{100 * r[k]:.1f}" for k in keys) for r in rows))
+
+
+if __name__ == "__main__":
+    main()
