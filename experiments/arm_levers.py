@@ -34,6 +34,9 @@ AT_TIP = ["neighbours.features=fingertip", "neighbours.radius_s=0.06",
           "neighbours.feature_weight=0.25"]  # (fingertip - disk, 0.25 q), radius 0.06
 LINEAR, OFFSETS = ["neighbours.local_model=action"], ["neighbours.local_model=action+state"]
 STATE, FINGERTIP, FINGERTIP_OFFSETS = IN_Q + LINEAR, AT_TIP + LINEAR, AT_TIP + OFFSETS
+# How the policy acts where its local model prefers no action: every variant starts from the
+# zero action (the paper's tie, the setting the earlier variants ran with); *_random change it.
+ZERO, RANDOM = ["neighbours.no_model_action=zero"], ["neighbours.no_model_action=random"]
 VARIANTS = {
     "state": STATE,  # the paper's: neighbourhoods in joint space
     "state_offsets": IN_Q + OFFSETS,
@@ -67,6 +70,15 @@ VARIANTS = {
     "fingertip_offsets_box0.6_disk0.3_x4": FINGERTIP_OFFSETS + ["collect.arm.start_range=0.6",
                                                                 "collect.disk_range=0.3",
                                                                 "collect.n_starts=20000"],
+    # where the local model prefers no action, a random joint move (arm-long's default since
+    # the policy option neighbours.no_model_action) instead of none
+    "fingertip_offsets_random": FINGERTIP_OFFSETS + RANDOM,
+    "fingertip_offsets_box0.6_disk0.3_random": FINGERTIP_OFFSETS + RANDOM + [
+        "collect.arm.start_range=0.6", "collect.disk_range=0.3"],
+    "fingertip_offsets_box0.6_disk0.3_x4_random": FINGERTIP_OFFSETS + RANDOM + [
+        "collect.arm.start_range=0.6", "collect.disk_range=0.3", "collect.n_starts=20000"],
+    "fingertip_offsets_box0.6_disk0.3_k40_random": FINGERTIP_OFFSETS + RANDOM + [
+        "collect.arm.start_range=0.6", "collect.disk_range=0.3", "neighbours.k=40"],
     # the online preset: 2500 random starts, then 5 rounds of the agent's pushes, 20,000 moves
     "online_fingertip_offsets": FINGERTIP_OFFSETS,
     # 4x the paper's moves: the paper's 5000 random starts, then 5 rounds of the agent's pushes
@@ -84,7 +96,7 @@ DATA_BOX = {"arm": [], "arm-long": ["collect.arm.start_range=1.0", "collect.disk
 
 def variant_config(task: str, name: str):
     base = tasks.preset(task, "online" if name.startswith("online") else "paper")
-    return override(base, DATA_BOX[task] + VARIANTS[name])
+    return override(base, DATA_BOX[task] + ZERO + VARIANTS[name])
 
 
 def data_store(out: Path, config) -> Path:

@@ -60,6 +60,22 @@ def test_the_online4x_preset_is_the_measured_setting():
         tasks.get(task).check(tasks.preset(task, "online4x"))
 
 
+def test_the_static4x_preset_is_the_measured_setting():
+    """``--preset static4x`` is the paper preset with 4x the random moves; on arm-long it is
+    the setting docs/arm.md measured (``experiments/arm_levers.py``'s
+    ``fingertip_offsets_box0.6_disk0.3_x4_random``: the data in the long-horizon task's
+    boxes, a random joint move where the local model prefers none)."""
+    for task in ("arm", "arm-long"):
+        assert tasks.preset(task, "static4x") == override(tasks.preset(task), ["collect.n_starts=20000"])
+        tasks.get(task).check(tasks.preset(task, "static4x"))
+    measured = ["neighbours.features=fingertip", "neighbours.radius_s=0.06", "neighbours.feature_weight=0.25",
+                "neighbours.local_model=action+state", "neighbours.no_model_action=random",
+                "collect.arm.start_range=0.6", "collect.disk_range=0.3", "collect.n_starts=20000"]
+    earlier_box = ["collect.arm.start_range=1.0", "collect.disk_range=0.4"]  # arm_levers' DATA_BOX
+    assert tasks.preset("arm-long", "static4x") == override(tasks.preset("arm-long"), earlier_box + measured)
+    assert tasks.preset("arm").neighbours.no_model_action == "zero"  # measured on arm-long only
+
+
 def test_arm_long_data_put_the_disk_anywhere_in_the_state():
     cfg = ArmCollectConfig(n_starts=96, n_goals=4, chunk_size=96, disk_range=0.4)
     data = collect_arm(jax.random.PRNGKey(3), cfg, progress=False)

@@ -212,7 +212,7 @@ def test_names_are_checked_and_listed():
     task = cli("train", "--task", "crane")
     assert task.returncode == 2 and "unknown task 'crane'; known tasks: push, arm, arm-long" in task.stderr
     preset = cli("train", "--task", "arm", "--preset", "forgiving")
-    assert preset.returncode == 2 and "its presets: paper, online, online4x, smoke" in preset.stderr
+    assert preset.returncode == 2 and "its presets: paper, online, online4x, static4x, smoke" in preset.stderr
     field = cli("train", "--set", "train.widht=3")
     assert field.returncode == 2 and "unknown config field 'train.widht'" in field.stderr
     for seeds in ([], [1, 1], [-1], [0.5]):

@@ -127,7 +127,9 @@ def presets(disk_range: float | None, start_range: float = 1.0) -> dict[str, Con
     ``online`` (round 0 of 2500 starts, then 5 rounds of the agent's own pushes, at most
     20,000 simulated moves), ``online4x`` (round 0 of the paper's 5000 starts, then 5 rounds
     of 1200 episodes, at most 40,000 simulated moves: the arm's best measured setting,
-    docs/arm.md; ~30 minutes a seed on 2 CPU cores) and ``smoke`` (a tiny end-to-end run).
+    docs/arm.md; ~30 minutes a seed on 2 CPU cores), ``static4x`` (4x the paper's random
+    moves, 20,000 starts: arm-long's best measured setting, ~15 minutes a seed) and ``smoke``
+    (a tiny end-to-end run).
 
     ``disk_range``: ``None`` for ``arm``; arm-long's 0.3 is its long-horizon task's range.
     ``start_range``: the box around the disk the data's fingertip starts in (the arm's
@@ -136,8 +138,8 @@ def presets(disk_range: float | None, start_range: float = 1.0) -> dict[str, Con
     the random moves push the disk (docs/arm.md: "Where the data starts")."""
     name = "arm" if disk_range is None else "arm-long"
     # arm-long: where the local model prefers no action a random joint move instead of none
-    # (the zero move is a fixed point: 31 of the 65 long-horizon failures of seeds 0-2 at 4x
-    # sat still to the end; docs/arm.md "Where lazy Q sat still").  Measured on arm-long only.
+    # (the zero move is a fixed point: 31 of the 65 long-horizon rollouts of seeds 0-2 at 4x
+    # that ran out of time sat still to the end; docs/arm.md "Where lazy Q sat still").
     neighbours = _NEIGHBOURS if disk_range is None else dataclasses.replace(
         _NEIGHBOURS, max_level=10, no_model_action="random")
     collect = ArmCollectConfig(arm=ArmConfig(start_range=start_range), disk_range=disk_range)
@@ -148,6 +150,7 @@ def presets(disk_range: float | None, start_range: float = 1.0) -> dict[str, Con
                                       online=OnlineConfig(rounds=5, episodes=600, max_steps=8)),
         "online4x": dataclasses.replace(paper, online=OnlineConfig(rounds=5, episodes=1200, max_steps=8,
                                                                    max_moves=40000)),
+        "static4x": dataclasses.replace(paper, collect=dataclasses.replace(collect, n_starts=20000)),
         "smoke": dataclasses.replace(
             paper, collect=dataclasses.replace(collect, n_starts=400, n_goals=20, chunk_size=400),
             eval=ArmEvalConfig(**_SMOKE_EVAL), **_SMOKE),
