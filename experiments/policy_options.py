@@ -22,8 +22,6 @@ import json
 import time
 from pathlib import Path
 
-import numpy as np
-
 from lazyq_jax.config import override
 from lazyq_jax.run import load_run
 from lazyq_jax.stats import format_ci, t_interval

@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from lazyq_jax.config import NO_MODEL_ACTIONS
 from lazyq_jax.local_model import (boundary_action, epanechnikov_weights, fit_local_linear, greedy_action,
                                    neighbour_offsets)
 from lazyq_jax.neighbours.query import PolicyIndex, build_policy_index, query_policy
@@ -71,8 +72,8 @@ def make_lazy_policy(value_fn: Callable, data: Transitions, *, gamma: float, act
     index = policy_index(data.s, data.g, k=k, radius_s=radius_s, radius_g=radius_g, growth=growth,
                          max_level=max_level)
     values = jax.jit(bootstrap_table, static_argnums=(0,))(value_fn, data, gamma)
-    if no_model_action not in ("zero", "random"):
-        raise ValueError(f"no_model_action must be 'zero' or 'random', got {no_model_action!r}")
+    if no_model_action not in NO_MODEL_ACTIONS:
+        raise ValueError(f"no_model_action must be one of {NO_MODEL_ACTIONS}, got {no_model_action!r}")
     return LazyPolicy(index, data.a, values, jnp.float32(action_length), action_set,
                       no_model_action=no_model_action)
 
