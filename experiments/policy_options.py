@@ -22,8 +22,10 @@ import json
 import time
 from pathlib import Path
 
+from lazyq_jax import tasks
 from lazyq_jax.config import override
 from lazyq_jax.run import load_run
+from lazyq_jax.run.runner import open_existing
 from lazyq_jax.stats import format_ci, t_interval
 
 POLICY_OPTIONS = ("neighbours.no_model_action", "neighbours.max_level")
@@ -52,9 +54,9 @@ def evaluate_with(run_dir: Path, option: str, value: str) -> list[dict]:
 
 def stored_rows(run_dir: Path) -> list[dict]:
     """The run's own ``lazy/eval.json`` as rows (the code it was evaluated with)."""
-    loaded = load_run(run_dir, "lazy")
+    task = tasks.get(open_existing(run_dir)[0].task)  # the task only: no data, no checkpoint
     stored = json.loads((run_dir / "lazy" / "eval.json").read_text())["per_seed"]
-    return [{"run": str(run_dir), "seed": r["seed"], **loaded.task.seed_rates(r), "idle_steps": idle_steps(r)}
+    return [{"run": str(run_dir), "seed": r["seed"], **task.seed_rates(r), "idle_steps": idle_steps(r)}
             for r in stored]
 
 
