@@ -76,28 +76,35 @@ class TargetDiagnostics:
         return jnp.mean(self.clip_active.astype(jnp.float32))
 
 
-def evaluate_in_batches(v: ValueFn, s, g, batch_size: int, mesh: Mesh | None = None):
-    """``v(s, g)`` over ``N`` points in chunks of ``batch_size`` (``lax.map``) to bound memory.
+def map_rows(f: Callable, n: int, batch_size: int, mesh: Mesh | None = None):
+    """``f(rows)`` for ``rows = arange(n)`` in chunks of ``batch_size`` rows (``lax.map``), so
+    that memory is bounded by a chunk, not by ``n``.
 
-    With a ``mesh`` every chunk is split over its devices (``batch_size`` is rounded
-    up to a multiple of the device count) and the result is replicated.
+    ``f`` maps int rows ``[B]`` to a pytree of ``[B, ...]`` arrays; the result is that pytree
+    for all ``n`` rows, ``[n, ...]``.  With a ``mesh`` every chunk is split over its devices
+    (``batch_size`` is rounded up to a multiple of the device count) and the result is
+    replicated.  The last chunk is filled up with rows from the start (``rows % n``), whose
+    results are dropped.
     """
-    n = s.shape[0]
     if batch_size <= 0:
         raise ValueError(f"batch_size must be positive, got {batch_size}")
+    if n <= 0:
+        raise ValueError(f"no rows to map over (n = {n})")
     d = mesh_size(mesh)
-    batch_size = -(-min(batch_size, n) // d) * d
-    n_b = -(-n // batch_size)
-    pad = n_b * batch_size - n
-
-    def chunks(x):  # [N, ...] -> [n_b, batch_size, ...] (g may be None: no goals)
-        x = jnp.pad(x, ((0, pad),) + ((0, 0),) * (x.ndim - 1))
-        return x.reshape(n_b, batch_size, *x.shape[1:])
-
+    size = -(-min(batch_size, n) // d) * d
+    n_b = -(-n // size)
+    rows = (jnp.arange(n_b * size, dtype=jnp.int32) % n).reshape(n_b, size)
     chunk = sharded(mesh)
-    values = jax.lax.map(lambda sg: constrain(v(*constrain(sg, chunk)), chunk),
-                         jax.tree.map(chunks, (s, g)))
-    return constrain(values.reshape(-1)[:n], replicated(mesh))
+    out = jax.lax.map(lambda r: constrain(f(constrain(r, chunk)), chunk), rows)
+    out = jax.tree.map(lambda x: x.reshape(n_b * size, *x.shape[2:])[:n], out)
+    return constrain(out, replicated(mesh))
+
+
+def evaluate_in_batches(v: ValueFn, s, g, batch_size: int, mesh: Mesh | None = None):
+    """``v(s, g)`` over ``N`` points in chunks of ``batch_size`` (:func:`map_rows`) to bound
+    memory; with a ``mesh`` every chunk is split over its devices and the result is
+    replicated."""
+    return map_rows(lambda r: v(s[r], None if g is None else g[r]), s.shape[0], batch_size, mesh)
 
 
 def dataset_targets(v_target: ValueFn, data: Transitions, neighbours_idx, *, gamma, action_length,
@@ -155,33 +162,32 @@ def local_fits(v: ValueFn, data: Transitions, neighbours_idx, *, gamma, projecti
     ``weights [N, k]``: weighted least squares (e.g.
     :func:`lazyq_jax.local_model.epanechnikov_weights`); not with a ``projection``.
 
-    With a ``mesh`` the value table is computed split over the devices and then
-    replicated, and the fits are split by rows (the outputs are row-sharded).
+    The fits run in chunks of ``batch_size`` rows (:func:`map_rows`): the neighbourhoods'
+    ``[B, k, ...]`` arrays exist for one chunk at a time, so memory grows with ``N`` only
+    by the ``[N, k]`` outputs.  With a ``mesh`` the value table is computed split over the
+    devices and then replicated, every chunk of fits is split over the devices, and the
+    outputs are replicated.
     """
     idx = jnp.asarray(neighbours_idx)
     if weights is not None and projection is not None:
         raise ValueError("local_fits takes weights or a projection (precomputed without weights), not both")
-    n, pad = idx.shape[0], -idx.shape[0] % mesh_size(mesh)
-    rows = jnp.arange(n + pad) % n  # padding repeats row 0 (dropped below)
-    if pad:  # rows split evenly over the devices
-        idx = jnp.concatenate([idx, jnp.broadcast_to(idx[:1], (pad, idx.shape[1]))])
-        if projection is not None:
-            projection = jnp.concatenate([projection, jnp.repeat(projection[:1], pad, 0)])
-        if weights is not None:
-            weights = jnp.concatenate([weights, jnp.broadcast_to(weights[:1], (pad, idx.shape[1]))])
-    idx = constrain(idx, sharded(mesh))
     if weights is not None:
-        weights = constrain(jnp.asarray(weights, jnp.float32), sharded(mesh))
-    y_nb = bootstrap_table(v, data, gamma, batch_size, mesh)[idx]
-    if state_offsets:
-        g = data.g if goal_offsets else None
-        offsets = neighbour_offsets(data.s[idx], data.s[rows], None if g is None else g[idx],
-                                    None if g is None else g[rows])
-        alpha, beta = fit_local_linear(data.a[idx], y_nb, weights, offsets=offsets)
-    elif projection is None:
-        alpha, beta = fit_local_linear(data.a[idx], y_nb, weights)
-    else:
-        alpha, beta = apply_projection(projection, y_nb)
-    out = alpha[:n], beta[:n], y_nb[:n]
-    # Uneven row shards have no NamedSharding: hand such results back replicated.
-    return constrain(out, replicated(mesh)) if pad else out
+        weights = jnp.asarray(weights, jnp.float32)
+    y = bootstrap_table(v, data, gamma, batch_size, mesh)
+    g = data.g if state_offsets and goal_offsets else None
+
+    def fit(rows):  # the fits of one chunk of rows: [B, k, ...] arrays live only here
+        nb = idx[rows]
+        y_nb = y[nb]
+        w = None if weights is None else weights[rows]
+        if state_offsets:
+            offsets = neighbour_offsets(data.s[nb], data.s[rows], None if g is None else g[nb],
+                                        None if g is None else g[rows])
+            alpha, beta = fit_local_linear(data.a[nb], y_nb, w, offsets=offsets)
+        elif projection is None:
+            alpha, beta = fit_local_linear(data.a[nb], y_nb, w)
+        else:
+            alpha, beta = apply_projection(projection[rows], y_nb)
+        return alpha, beta, y_nb
+
+    return map_rows(fit, idx.shape[0], batch_size, mesh)

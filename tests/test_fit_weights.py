@@ -78,7 +78,7 @@ def test_weights_against_numpy(goal):
 def test_weighted_local_fits_against_weighted_lstsq():
     """``local_fits(weights=...)`` (state offsets as covariates) is, per row, the float64
     least squares of ``sqrt(w_j) y_j`` on ``sqrt(w_j) (1, a_j, s_j - s_i)``; uniform weights
-    give the unweighted fit bitwise; weights and a projection together are refused."""
+    give the unweighted fit (up to rounding); weights and a projection together are refused."""
     rng = np.random.default_rng(1)
     n, k = 50, 14
     s = rng.normal(size=(n, 3)).astype(np.float32)
@@ -102,7 +102,10 @@ def test_weighted_local_fits_against_weighted_lstsq():
     plain = local_fits(v, data, jnp.asarray(idx), gamma=0.9, state_offsets=True)
     ones = local_fits(v, data, jnp.asarray(idx), gamma=0.9, state_offsets=True,
                       weights=jnp.ones((n, k)))
-    np.testing.assert_array_equal(np.asarray(ones[1]), np.asarray(plain[1]))
+    # Weights of 1 multiply exactly, but the two programs are compiled apart (their fusion and
+    # reduction order may differ): equal up to float32 rounding of terms of size ~1.
+    np.testing.assert_allclose(np.asarray(ones[1]), np.asarray(plain[1]), rtol=0,
+                               atol=1e-5 * (float(np.abs(plain[1]).max()) + 1.0))
     with pytest.raises(ValueError, match="not both"):
         local_fits(v, data, jnp.asarray(idx), gamma=0.9, weights=jnp.asarray(w),
                    projection=jnp.zeros((n, 3, k)))
