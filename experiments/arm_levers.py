@@ -79,6 +79,11 @@ VARIANTS = {
         "collect.arm.start_range=0.6", "collect.disk_range=0.3", "collect.n_starts=20000"],
     "fingertip_offsets_box0.6_disk0.3_k40_random": FINGERTIP_OFFSETS + RANDOM + [
         "collect.arm.start_range=0.6", "collect.disk_range=0.3", "neighbours.k=40"],
+    # 4x the moves, a quarter of the goals per move (25, not §V-A-3's 100): the rows (and the
+    # training's cost) of 1x, but a neighbourhood of k rows holds more distinct moves
+    "fingertip_offsets_box0.6_disk0.3_x4_g25_random": FINGERTIP_OFFSETS + RANDOM + [
+        "collect.arm.start_range=0.6", "collect.disk_range=0.3", "collect.n_starts=20000",
+        "collect.n_goals=25"],
     # the online preset: 2500 random starts, then 5 rounds of the agent's pushes, 20,000 moves
     "online_fingertip_offsets": FINGERTIP_OFFSETS,
     # 4x the paper's moves: the paper's 5000 random starts, then 5 rounds of the agent's pushes
