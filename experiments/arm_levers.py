@@ -81,6 +81,7 @@ VARIANTS = {
         "collect.arm.start_range=0.6", "collect.disk_range=0.3", "neighbours.k=40"],
     # 4x the moves, a quarter of the goals per move (25, not §V-A-3's 100): the rows (and the
     # training's cost) of 1x, but a neighbourhood of k rows holds more distinct moves
+    "fingertip_offsets_x4_g25": FINGERTIP_OFFSETS + ["collect.n_starts=20000", "collect.n_goals=25"],
     "fingertip_offsets_box0.6_disk0.3_x4_g25_random": FINGERTIP_OFFSETS + RANDOM + [
         "collect.arm.start_range=0.6", "collect.disk_range=0.3", "collect.n_starts=20000",
         "collect.n_goals=25"],
