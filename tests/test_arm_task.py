@@ -61,16 +61,21 @@ def test_the_online4x_preset_is_the_measured_setting():
 
 
 def test_the_static4x_preset_is_the_measured_setting():
-    """``--preset static4x`` is the paper preset with 4x the random moves; on arm-long it is
-    the setting docs/arm.md measured (``experiments/arm_levers.py``'s
-    ``fingertip_offsets_box0.6_disk0.3_x4_random``: the data in the long-horizon task's
-    boxes, a random joint move where the local model prefers none)."""
+    """``--preset static4x`` is the paper preset with 4x the random moves, each stored with 25
+    goals instead of 100 (the rows of 1x); it is the setting docs/arm.md measured
+    (``experiments/arm_levers.py``'s ``fingertip_offsets_x4_g25`` on arm and
+    ``fingertip_offsets_box0.6_disk0.3_x4_g25_random`` on arm-long: there the data in the
+    long-horizon task's boxes, a random joint move where the local model prefers none)."""
+    four_times = ["collect.n_starts=20000", "collect.n_goals=25"]
     for task in ("arm", "arm-long"):
-        assert tasks.preset(task, "static4x") == override(tasks.preset(task), ["collect.n_starts=20000"])
+        assert tasks.preset(task, "static4x") == override(tasks.preset(task), four_times)
         tasks.get(task).check(tasks.preset(task, "static4x"))
-    measured = ["neighbours.features=fingertip", "neighbours.radius_s=0.06", "neighbours.feature_weight=0.25",
-                "neighbours.local_model=action+state", "neighbours.no_model_action=random",
-                "collect.arm.start_range=0.6", "collect.disk_range=0.3", "collect.n_starts=20000"]
+    at_tip = ["neighbours.features=fingertip", "neighbours.radius_s=0.06", "neighbours.feature_weight=0.25",
+              "neighbours.local_model=action+state"]
+    assert tasks.preset("arm", "static4x") == override(
+        tasks.preset("arm"), ["neighbours.no_model_action=zero"] + at_tip + four_times)
+    measured = at_tip + ["neighbours.no_model_action=random", "collect.arm.start_range=0.6",
+                         "collect.disk_range=0.3"] + four_times
     earlier_box = ["collect.arm.start_range=1.0", "collect.disk_range=0.4"]  # arm_levers' DATA_BOX
     assert tasks.preset("arm-long", "static4x") == override(tasks.preset("arm-long"), earlier_box + measured)
     assert tasks.preset("arm").neighbours.no_model_action == "zero"  # measured on arm-long only
