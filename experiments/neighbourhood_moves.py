@@ -4,9 +4,9 @@ with nearby goals, and Eq. (6)'s fit of ``beta`` sees only those few actions.
 
 For each run directory and seed: the neighbourhoods of every row as lazy Q's training draws
 them (its ``prepare``: the run's feature map, radii, ``k`` and key), then the number of
-distinct moves among each row's ``k`` neighbours (a move = rows with the same state and
-action).  Prints the mean, median, the fractions with one and with at most two moves, and
-with fewer moves than the local model's action coefficients plus one (``1 + n_a``).
+distinct moves (rows with the same state and action) and of distinct actions among each
+row's ``k`` neighbours.  Prints for both the mean, median, the fractions with one and with at
+most two, and with fewer than ``1 + n_a`` (what Eq. (6)'s ``alpha, beta`` need).
 Trains nothing; needs only the datasets: a run directory's, or those that ``collect`` wrote
 (no ``run.json``: then ``--task``, ``--preset`` and ``--set`` say how they were made).
 
