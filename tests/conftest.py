@@ -81,3 +81,16 @@ def push_run(tmp_path_factory):
     run_dir = tmp_path_factory.mktemp("push_run")
     run(PUSH, run_dir, progress=False)
     return run_dir
+
+
+# The files whose tests take longest (minutes, mostly compilation; measured with
+# ``make test ARGS=--durations=40``), longest first.  ``make test`` hands whole files to
+# its workers in collection order (``--dist loadfile --no-loadscope-reorder``): starting
+# the long files first keeps one worker from running a long file alone at the end.
+LONG_FILES = ("test_parallel.py", "test_study_arms.py", "test_study.py", "test_online.py",
+              "test_lazy_push.py", "test_agents.py", "test_pointmaze.py", "test_readme.py")
+
+
+def pytest_collection_modifyitems(items):
+    rank = {name: i for i, name in enumerate(LONG_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(LONG_FILES)))  # stable: file order kept
