@@ -247,9 +247,12 @@ def test_the_task_through_the_cli(tmp_path):
         assert 0.0 <= m["per_seed"][0]["success_rate"] <= 1.0
     assert (run_dir / "figures" / "lazy" / "maze_rollouts.png").exists()
     assert (run_dir / "figures" / "lazy" / "maze_value.png").exists()
-    # reload: evaluate again from the checkpoints, and hand user code a policy
-    out = cli("evaluate", "--run-dir", str(run_dir), "--no-progress")
+    # reload: evaluate lazy Q again from its checkpoints (the same rows; the others kept), and
+    # hand user code a policy
+    out = cli("evaluate", "--run-dir", str(run_dir), "--methods", "lazy", "--no-figures", "--no-progress")
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
+    rows = lambda r: {name: (m["per_seed"], m["summary"]) for name, m in r["methods"].items()}
+    assert rows(json.loads((run_dir / "results.json").read_text())) == rows(results)
     for method in ("lazy", GCIVL):
         act = load_policy(run_dir, method)
         a = act(jax.random.PRNGKey(0), jnp.zeros((3, 2)), jnp.full((3, 2), 4.0))
