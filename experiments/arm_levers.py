@@ -90,12 +90,10 @@ VARIANTS = {
     # 4x the paper's moves: the paper's 5000 random starts, then 5 rounds of the agent's pushes
     "online_fingertip_offsets_x4": FINGERTIP_OFFSETS + ["collect.n_starts=5000", "online.episodes=1200",
                                                         "online.max_moves=40000"],
-    # the same with every move (random or the agent's) stored with 25 goals instead of 100
-    "online_fingertip_offsets_x4_g25": FINGERTIP_OFFSETS + [
-        "collect.n_starts=5000", "collect.n_goals=25", "online.episodes=1200",
-        "online.max_moves=40000"],
     "online_state": STATE,
 }
+# online_fingertip_offsets_x4 with every move (random or the agent's) stored with 25 goals, not 100
+VARIANTS["online_fingertip_offsets_x4_g25"] = VARIANTS["online_fingertip_offsets_x4"] + ["collect.n_goals=25"]
 
 
 # The data as arm-long collected it before its preset took the long-horizon task's boxes
