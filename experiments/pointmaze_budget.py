@@ -12,6 +12,7 @@ same data, seeds and evaluation, each trained for the same wall-clock time on th
 
     .venv/bin/python experiments/pointmaze_budget.py --run-dir runs/pointmaze_budget --seeds 1
     .venv/bin/python experiments/pointmaze_budget.py --run-dir R --seconds 600 --methods gcivl,gcbc
+    .venv/bin/python experiments/pointmaze_budget.py --run-dir R --seeds 3 --methods gcivl --max-seconds 150
 
 OGBench trains 1M steps of batch 1024; the fraction of that budget each baseline got is in the
 table.  Results: docs/pointmaze.md.
@@ -65,6 +66,9 @@ def main() -> None:
     p.add_argument("--methods", default="gcivl,gciql,gcbc",
                    help="baselines, each with options if wanted (gcivl:width=128)")
     p.add_argument("--seconds", type=float, default=None, help="budget (default: lazy Q's training time)")
+    p.add_argument("--max-seconds", type=float, default=None,
+                   help="cap on the budget (a lent device's minutes); the table says when it bound")
+    p.add_argument("--preset", default="paper", help="the task's preset (smoke: a tiny end-to-end check)")
     p.add_argument("--calibrate", type=int, default=200,
                    help="steps timed per baseline (after compiling)")
     p.add_argument("--calibrate-only", action="store_true", help="print the rates, train nothing")
@@ -72,7 +76,7 @@ def main() -> None:
     args = p.parse_args()
     run_dir = Path(args.run_dir)
     seeds = list(range(args.seeds))
-    config = override(tasks.preset("pointmaze", "paper"), args.sets)
+    config = override(tasks.preset("pointmaze", args.preset), args.sets)
     task = tasks.get("pointmaze")
 
     if args.seconds is None:
@@ -83,6 +87,11 @@ def main() -> None:
         budget = lazy_timing["train_s"] + lazy_timing.get("prepare_s", 0.0)
     else:
         budget = args.seconds
+    capped = args.max_seconds is not None and budget > args.max_seconds
+    if capped:
+        print(f"budget {budget:.0f} s capped at --max-seconds {args.max_seconds:.0f} s: the baselines "
+              "get less time than lazy Q")
+        budget = args.max_seconds
     print(f"budget: {budget:.0f} s of training per method ({len(seeds)} seed(s) together)")
 
     sd = static_data(task, config, run_dir, seeds, progress=False)
@@ -97,7 +106,7 @@ def main() -> None:
     if args.calibrate_only:
         return
     (run_dir / "budget.json").write_text(json.dumps(
-        {"budget_s": budget, "calibrate_steps": args.calibrate, "specs": specs,
+        {"budget_s": budget, "capped": capped, "calibrate_steps": args.calibrate, "specs": specs,
          "ogbench_fraction": fractions}, indent=1))
     # with --seconds lazy Q need not be in this run directory (nor is it trained here)
     methods = specs if args.seconds is not None else ["lazy", *specs]
