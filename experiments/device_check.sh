@@ -1,26 +1,32 @@
 #!/usr/bin/env bash
 # The prepared check for a lent GPU (the `device` tool: 15 minutes of device time in all, one
-# command of at most 10 minutes).  Everything the issues ask of a device, in one script, each
-# stage bounded so that what finished comes back even when a later stage runs out of time:
+# command of at most 10 minutes).  What the issues ask of a device, in two commands, each stage
+# bounded so that what finished comes back even when a later stage runs out of time:
 #
-#   1. OGBench's pointmaze (issue 24): lazy Q and GCIVL (OGBench's 3 x 512, batch 1024) on the
-#      same data, 3 seeds vmapped, GCIVL for lazy Q's GPU time (capped by PM_MAX_S), through
-#      experiments/pointmaze_budget.py; the run directory (without data and checkpoints) is
-#      copied to $OUT/pm.tgz every 20 s, the log to $OUT/pointmaze.log.
-#   2. The paper-scale neighbour search (issue 22, experiments/bench_neighbours.py) and the
-#      policy's per-step query (bench_neighbours_query.py) on the GPU, with what time is left.
+#   bash experiments/device_check.sh lazy     (~9 minutes on an H200)
+#     1. OGBench's pointmaze (issue 24): lazy Q, 3 seeds vmapped, trained and evaluated, then
+#        GCIVL's steps a second at OGBench's 3 x 512 and batch 1024 timed on the same data
+#        (experiments/pointmaze_budget.py --calibrate-only); the run directory (without data
+#        and checkpoints) is copied to $OUT/pm.tgz every 20 s, the log to $OUT/pointmaze.log.
+#     2. The paper-scale neighbour search (issue 22, experiments/bench_neighbours.py) and the
+#        policy's per-step query (bench_neighbours_query.py) on the GPU, with the time left.
+#   bash experiments/device_check.sh gcivl STEPS   (~3 minutes)
+#     3. GCIVL for STEPS steps (the rate printed by the first command times lazy Q's time,
+#        capped by what is left) on the same seeds' data, 3 seeds vmapped, evaluated: $OUT/pm2.tgz.
 #
 # Packages the device image lacks (MuJoCo, MJX, ogbench) and our pinned flax/optax/orbax/chex
-# travel as wheels in .whl (git-ignored; see docs/performance.md "One GPU" for the command that
-# downloads them).  Run through the device tool from the repository root:
+# travel as wheels in .whl (git-ignored; docs/performance.md "One GPU (NVIDIA H200...)" has the
+# command that downloads them).  Through the device tool, from the repository root:
 #
-#   run(command="bash experiments/device_check.sh", carry=[".whl"], timeout_s=600)
+#   run(command="bash experiments/device_check.sh lazy", carry=[".whl"], timeout_s=600)
+#   run(command="bash experiments/device_check.sh gcivl 91895", carry=[".whl"], timeout_s=250)
 #
 # Environment: DEADLINE_S (default 585: seconds after which nothing new starts), PM_MAX_S
-# (default 100: cap on the baselines' budget), PM_SEEDS (default 3); for a dry run on a CPU
-# with a python3 that has the packages: PM_EXTRA="--preset smoke --calibrate 20" SEARCH_N=100000
-# QUERY_EXTRA="--n-states 2000" SKIP_WHEELS=1 PATH=$PWD/.venv/bin:$PATH bash experiments/device_check.sh
+# (default 100: the cap on the baselines' budget printed by the first command), PM_SEEDS
+# (default 3); for a dry run on a CPU: PM_EXTRA="--preset smoke --calibrate 20" SEARCH_N=100000
+# QUERY_EXTRA="--n-states 2000" SKIP_WHEELS=1 PATH=$PWD/.venv/bin:$PATH bash experiments/device_check.sh lazy
 set -u
+PART=${1:?"usage: device_check.sh lazy | gcivl STEPS"}
 T0=$(date +%s)
 DEADLINE_S=${DEADLINE_S:-585}
 PM_MAX_S=${PM_MAX_S:-100}
@@ -38,17 +44,32 @@ export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 log "installed"
 { nvidia-smi -L; nproc; python3 -c "import jax, flax, mujoco, numpy; print('jax', jax.__version__, jax.devices(), 'flax', flax.__version__, 'mujoco', mujoco.__version__, 'numpy', numpy.__version__)"; } 2>&1 | tee -a "$OUT/device.log"
 
-# 1. pointmaze: lazy Q, then GCIVL at lazy Q's time (capped), 3 seeds vmapped, OGBench's evaluation
-PM=/tmp/pm
-snapshot() { tar czf "$OUT/pm.tgz.tmp" --exclude=checkpoints --exclude=data -C /tmp pm 2>/dev/null \
-             && mv "$OUT/pm.tgz.tmp" "$OUT/pm.tgz"; }
-( while sleep 20; do snapshot; done ) &
+# the run directory without data and checkpoints, to $OUT/$1.tgz, every 20 s and at the end
+snapshot() { tar czf "$OUT/$1.tgz.tmp" --exclude=checkpoints --exclude=data -C /tmp "$1" 2>/dev/null \
+             && mv "$OUT/$1.tgz.tmp" "$OUT/$1.tgz"; }
+
+if [ "$PART" = gcivl ]; then
+    # 3. GCIVL for the given steps, 3 seeds vmapped, OGBench's evaluation
+    STEPS=${2:?"usage: device_check.sh gcivl STEPS"}
+    ( while sleep 20; do snapshot pm2; done ) &
+    SNAP=$!
+    timeout "$(left)" python3 -m lazyq_jax study --task pointmaze --seeds "$PM_SEEDS" \
+        --methods "gcivl:steps=$STEPS" --run-dir /tmp/pm2 --no-progress ${PM_EXTRA:-} > "$OUT/pm2.log" 2>&1
+    log "gcivl: exit $?"
+    kill $SNAP 2>/dev/null; snapshot pm2
+    exit 0
+fi
+[ "$PART" = lazy ] || { echo "usage: device_check.sh lazy | gcivl STEPS"; exit 2; }
+
+# 1. pointmaze: lazy Q, 3 seeds vmapped, OGBench's evaluation; then GCIVL's rate on the same data
+( while sleep 20; do snapshot pm; done ) &
 SNAP=$!
 log "pointmaze: $(left) s left"
-timeout $(( $(left) - 100 )) python3 experiments/pointmaze_budget.py --run-dir $PM --seeds "$PM_SEEDS" \
-    --methods gcivl --max-seconds "$PM_MAX_S" --calibrate 300 ${PM_EXTRA:-} > "$OUT/pointmaze.log" 2>&1
+timeout $(( $(left) - 100 )) python3 experiments/pointmaze_budget.py --run-dir /tmp/pm --seeds "$PM_SEEDS" \
+    --methods gcivl --max-seconds "$PM_MAX_S" --calibrate 300 --calibrate-only ${PM_EXTRA:-} \
+    > "$OUT/pointmaze.log" 2>&1
 log "pointmaze: exit $?"
-kill $SNAP 2>/dev/null; snapshot
+kill $SNAP 2>/dev/null; snapshot pm
 
 # 2. the neighbour search and the policy query on the GPU (the 2-core CPU's figures: docs/performance.md)
 if [ "$(left)" -gt 30 ]; then
