@@ -5,7 +5,8 @@ The public API, re-exported here (see the README's API tour):
 * the lazy core (§IV, §V-A-2), for any states, actions and goals:
   :func:`find_neighbours`, :func:`fit_local_linear`, :func:`greedy_action` (Eq. 9),
   :func:`lazy_target` (Eq. 7/8), :func:`dataset_targets` (Eq. 11-14), :class:`Transitions`
-* learning (§IV-E): :func:`make_train`, :func:`save_checkpoint`, :func:`load_checkpoint`
+* learning (§IV-E): :func:`make_train`, :func:`save_checkpoint` (:func:`checkpoint_writer` for
+  a checkpoint per block), :func:`load_checkpoint`
 * acting: :func:`make_lazy_policy`, :func:`lazy_policy`
 * agents (lazy Q and the baselines, one file each): :func:`lazyq_jax.agents.make`
 * tasks (the push world of §V-A-1, the arm; one folder each): :func:`lazyq_jax.tasks.get`,
@@ -18,8 +19,8 @@ The public API, re-exported here (see the README's API tour):
 
 from lazyq_jax import agents, tasks
 from lazyq_jax.agents import Agent, Problem, Spec
-from lazyq_jax.checkpoint import (CheckpointDamaged, CheckpointError, load_checkpoint,
-                                  load_latest_intact, save_checkpoint)
+from lazyq_jax.checkpoint import (CheckpointDamaged, CheckpointError, checkpoint_writer,
+                                  load_checkpoint, load_latest_intact, save_checkpoint)
 from lazyq_jax.config import (Config, ConfigError, NeighbourConfig, OnlineConfig, ParallelConfig,
                               TrainConfig, override)
 from lazyq_jax.data import DatasetError, load_dataset, save_dataset
@@ -50,7 +51,7 @@ __all__ = [
     "NeighbourConfig", "Neighbours", "OnlineConfig", "ParallelConfig", "Problem", "PushConfig",
     "PushEnv", "PushState", "RunDirError", "Spec", "TargetDiagnostics", "TrainConfig", "TrainState",
     "Transitions", "ValueNetwork", "agents", "apply_projection", "bootstrap_table",
-    "bootstrap_values", "build_index", "check_found", "collect", "collect_arm", "dataset_summary",
+    "bootstrap_values", "build_index", "check_found", "checkpoint_writer", "collect", "collect_arm", "dataset_summary",
     "dataset_targets", "double_dqn_target", "evaluate_in_batches", "evaluate_run",
     "find_neighbours", "fit_local_linear", "greedy_action", "lazy_policy", "lazy_target",
     "load_checkpoint", "load_dataset", "load_latest_intact", "load_policy", "load_run", "local_fits",

@@ -15,12 +15,14 @@ and :func:`load_latest_intact` then resumes from the newest intact one.
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import hashlib
 import json
 import os
 import shutil
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import jax
 import orbax.checkpoint as ocp
@@ -67,19 +69,40 @@ def _verify(step_dir: Path) -> None:
                                     "(its checksum differs from the one written with it)")
 
 
-def save_checkpoint(directory: str | os.PathLike, state: Any, step: int, meta: dict | None = None
-                    ) -> Path:
-    """Save ``state`` as checkpoint number ``step`` under ``directory``, with ``meta`` (JSON)."""
-    directory = Path(directory)
+def _save(manager: ocp.CheckpointManager, directory: Path, state: Any, step: int,
+          meta: dict | None) -> Path:
     record = {**(meta or {}), "version": CHECKPOINT_VERSION, "step": int(step)}
-    with _manager(directory) as manager:
-        manager.save(int(step), args=ocp.args.Composite(state=ocp.args.StandardSave(state),
-                                                         meta=ocp.args.JsonSave(record)), force=True)
-        manager.wait_until_finished()
+    manager.save(int(step), args=ocp.args.Composite(state=ocp.args.StandardSave(state),
+                                                     meta=ocp.args.JsonSave(record)), force=True)
+    manager.wait_until_finished()
     step_dir = directory / str(int(step))
     if jax.process_index() == 0:
         (step_dir / CHECKSUMS).write_text(json.dumps(_digests(step_dir), indent=0))
     return step_dir
+
+
+@contextlib.contextmanager
+def checkpoint_writer(directory: str | os.PathLike) -> Iterator[Callable[..., Path]]:
+    """``with checkpoint_writer(directory) as save: save(state, step, meta)`` for many saves
+    into one directory (a training run's blocks): one orbax manager for all of them.
+
+    Opening a manager lists every checkpoint already there (orbax builds each step's
+    metadata in a thread pool), so :func:`save_checkpoint` per block costs time linear in
+    the blocks before it: 0.10 s at the first and 0.47-0.56 s at the 150th-190th on 2 cores
+    (a 300-block pointmaze run spent 132 s of its 1406 s in saves; on a GPU, 178 s against
+    103 s of training).  Each save is synchronous and written with its checksums, as
+    :func:`save_checkpoint`'s."""
+    directory = Path(directory)
+    with _manager(directory) as manager:
+        yield functools.partial(_save, manager, directory)
+
+
+def save_checkpoint(directory: str | os.PathLike, state: Any, step: int, meta: dict | None = None
+                    ) -> Path:
+    """Save ``state`` as checkpoint number ``step`` under ``directory``, with ``meta`` (JSON)
+    (for many saves into one directory, :func:`checkpoint_writer`)."""
+    with checkpoint_writer(directory) as save:
+        return save(state, step, meta)
 
 
 def latest_step(directory: str | os.PathLike) -> int | None:

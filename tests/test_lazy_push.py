@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from conftest import PUSH
-from lazyq_jax.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from lazyq_jax.checkpoint import (CheckpointDamaged, CheckpointError, all_steps, checkpoint_writer,
+                                  load_checkpoint, save_checkpoint)
 from lazyq_jax.config import override
 from lazyq_jax.run import evaluate_run, load_run
 from lazyq_jax.targets import dataset_targets, lazy_target, local_fits
@@ -98,6 +99,27 @@ def test_checkpoint_round_trip_is_exact(tmp_path, trained):
     assert meta["note"] == "x" and meta["step"] == 4
     assert tree_equal(restored, state)
     assert jax.tree.structure(restored) == jax.tree.structure(state)
+
+
+def test_checkpoint_writer_saves_every_step_as_save_checkpoint_does(tmp_path, trained):
+    """One manager for many saves (the runner's blocks): every step is listed, restores
+    exactly, carries its own metadata, and has its checksums (damage is recognised)."""
+    state = trained[0]
+    abstract = jax.eval_shape(lambda: state)
+    bumped = jax.tree.map(lambda x: x + 1 if jnp.issubdtype(x.dtype, jnp.floating) else x, state)
+    with checkpoint_writer(tmp_path / "ck") as save:
+        for step, st in ((1, state), (2, bumped), (3, state)):
+            assert save(st, step, {"block": step}) == tmp_path / "ck" / str(step)
+    assert all_steps(tmp_path / "ck") == [1, 2, 3]
+    for step, st in ((1, state), (2, bumped), (3, state)):
+        restored, meta = load_checkpoint(tmp_path / "ck", abstract, step)
+        assert tree_equal(restored, st) and meta["block"] == step and meta["step"] == step
+    assert (tmp_path / "ck" / "2" / "checksums.json").exists()
+    victim = next(p for p in sorted((tmp_path / "ck" / "3" / "state").rglob("*")) if p.is_file()
+                  and p.stat().st_size > 0)
+    victim.write_bytes(victim.read_bytes()[:-1])  # truncated
+    with pytest.raises(CheckpointDamaged, match="damaged or truncated"):
+        load_checkpoint(tmp_path / "ck", abstract, 3)
 
 
 def test_bad_checkpoints_give_clear_errors(tmp_path, trained):

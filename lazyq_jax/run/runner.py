@@ -35,7 +35,7 @@ from tqdm.auto import tqdm
 from lazyq_jax import agents, tasks
 from lazyq_jax.agents import Agent, FixedPolicy, LazyConfig, Problem
 from lazyq_jax.agents.base import stack_trees
-from lazyq_jax.checkpoint import CheckpointError, latest_step, load_latest_intact, save_checkpoint
+from lazyq_jax.checkpoint import CheckpointError, checkpoint_writer, latest_step, load_latest_intact
 from lazyq_jax.config import Config, ConfigError, NeighbourConfig, override, to_dict
 from lazyq_jax.data import DatasetError
 from lazyq_jax.keys import purpose_key
@@ -198,32 +198,35 @@ def train_method(ctx: Context, agent: Agent, spec: MethodSpec, method_dir: Path,
     aux, round_timing = None, {}
     if online is not None and first > 0:
         _round_end(ctx, agent, online, states, sd, method_dir, first, {}, run_block)
-    for block in range(first, total):
-        r = online.round_starting(block) if online is not None else None
-        if r is not None:
+    # one orbax manager for every block's checkpoint (opening one per save costs time linear
+    # in the checkpoints already there: checkpoint_writer)
+    with checkpoint_writer(method_dir / "checkpoints") as save:
+        for block in range(first, total):
+            r = online.round_starting(block) if online is not None else None
+            if r is not None:
+                t = time.perf_counter()
+                policies = agent.policies(states, sd.stacked, sd.n_valid)
+                sd, counts = online.collect(_explorer(ctx, agent), policies, sd, r, round0)
+                round_timing = {"collect_s": round(time.perf_counter() - t, 2), "counts": counts}
+                stacked, aux = place(sd.stacked), None  # the data grew: new neighbourhoods
+            if aux is None or agent.refresh(block):
+                t = time.perf_counter()
+                aux = stack_trees([agent.prepare(s, _seed_slice(sd.stacked, i), int(sd.n_valid[i]), block)
+                                   for i, s in enumerate(ctx.seeds)])
+                timings["prepare_s"] += time.perf_counter() - t
             t = time.perf_counter()
-            policies = agent.policies(states, sd.stacked, sd.n_valid)
-            sd, counts = online.collect(_explorer(ctx, agent), policies, sd, r, round0)
-            round_timing = {"collect_s": round(time.perf_counter() - t, 2), "counts": counts}
-            stacked, aux = place(sd.stacked), None  # the data grew: new neighbourhoods
-        if aux is None or agent.refresh(block):
-            t = time.perf_counter()
-            aux = stack_trees([agent.prepare(s, _seed_slice(sd.stacked, i), int(sd.n_valid[i]), block)
-                               for i, s in enumerate(ctx.seeds)])
-            timings["prepare_s"] += time.perf_counter() - t
-        t = time.perf_counter()
-        states, metrics = run_block(states, stacked, aux, jnp.asarray(sd.n_valid))
-        metrics = jax.device_get(metrics)
-        seconds = time.perf_counter() - t
-        timings["train_s"] += seconds
-        save_checkpoint(method_dir / "checkpoints", states, block + 1, meta)
-        record = _metrics_record(block + 1, seconds, metrics)
-        append_jsonl(metrics_path, record)
-        bar.update(1)
-        _log_block(spec, block + 1, total, record)
-        if online is not None:
-            if _round_end(ctx, agent, online, states, sd, method_dir, block + 1, round_timing, run_block):
-                round_timing = {}
+            states, metrics = run_block(states, stacked, aux, jnp.asarray(sd.n_valid))
+            metrics = jax.device_get(metrics)
+            seconds = time.perf_counter() - t
+            timings["train_s"] += seconds
+            save(states, block + 1, meta)
+            record = _metrics_record(block + 1, seconds, metrics)
+            append_jsonl(metrics_path, record)
+            bar.update(1)
+            _log_block(spec, block + 1, total, record)
+            if online is not None:
+                if _round_end(ctx, agent, online, states, sd, method_dir, block + 1, round_timing, run_block):
+                    round_timing = {}
     bar.close()
     return states, sd, timings
 
