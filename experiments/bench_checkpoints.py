@@ -1,7 +1,7 @@
 """A run's checkpoint per block: one orbax manager per save (``save_checkpoint``, the runner
 until this change) against one manager for the whole run (``checkpoint_writer``), in the same
-run, on a state of the size of lazy Q's on pointmaze (~260 KB: an 8 x 32 network, Adam's
-moments).  Opening a manager lists every checkpoint already in the directory, so the first
+run, on a small state like lazy Q's on pointmaze (180 KB: a 9 x 32 x 32 network, Adam's
+moments, targets).  Opening a manager lists every checkpoint already in the directory, so the first
 way costs time linear in the blocks saved before.
 
     .venv/bin/python experiments/bench_checkpoints.py [--saves 300]

@@ -84,14 +84,11 @@ def _save(manager: ocp.CheckpointManager, directory: Path, state: Any, step: int
 @contextlib.contextmanager
 def checkpoint_writer(directory: str | os.PathLike) -> Iterator[Callable[..., Path]]:
     """``with checkpoint_writer(directory) as save: save(state, step, meta)`` for many saves
-    into one directory (a training run's blocks): one orbax manager for all of them.
+    into one directory (a training run's blocks): one orbax manager for all of them, each
+    save synchronous and written with its checksums as :func:`save_checkpoint`'s.
 
-    Opening a manager lists every checkpoint already there (orbax builds each step's
-    metadata in a thread pool), so :func:`save_checkpoint` per block costs time linear in
-    the blocks before it: 300 saves of a small state took 86.5 s that way and 12.1 s with one
-    manager on 2 cores (``experiments/bench_checkpoints.py``; a 300-block pointmaze run spent
-    ~130 s of its 1406 s outside training, a GPU run more than its 103 s of training).  Each save is synchronous and written with its checksums, as
-    :func:`save_checkpoint`'s."""
+    Opening a manager lists every checkpoint already there, so a manager per save costs
+    time linear in the saves before it (docs/performance.md, "A checkpoint per block")."""
     directory = Path(directory)
     with _manager(directory) as manager:
         yield functools.partial(_save, manager, directory)

@@ -198,8 +198,6 @@ def train_method(ctx: Context, agent: Agent, spec: MethodSpec, method_dir: Path,
     aux, round_timing = None, {}
     if online is not None and first > 0:
         _round_end(ctx, agent, online, states, sd, method_dir, first, {}, run_block)
-    # one orbax manager for every block's checkpoint (opening one per save costs time linear
-    # in the checkpoints already there: checkpoint_writer)
     with checkpoint_writer(method_dir / "checkpoints") as save:
         for block in range(first, total):
             r = online.round_starting(block) if online is not None else None
@@ -211,8 +209,8 @@ def train_method(ctx: Context, agent: Agent, spec: MethodSpec, method_dir: Path,
                 stacked, aux = place(sd.stacked), None  # the data grew: new neighbourhoods
             if aux is None or agent.refresh(block):
                 t = time.perf_counter()
-                aux = stack_trees([agent.prepare(s, _seed_slice(sd.stacked, i), int(sd.n_valid[i]), block)
-                                   for i, s in enumerate(ctx.seeds)])
+                aux = stack_trees([agent.prepare(s, _seed_slice(sd.stacked, i), int(sd.n_valid[i]),
+                                                 block) for i, s in enumerate(ctx.seeds)])
                 timings["prepare_s"] += time.perf_counter() - t
             t = time.perf_counter()
             states, metrics = run_block(states, stacked, aux, jnp.asarray(sd.n_valid))
