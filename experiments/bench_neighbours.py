@@ -5,7 +5,9 @@ disk of radius 0.25 + 0.06, each paired with 100 goals uniform in ``[-pi, pi)``;
 every data point is also a query (Q = N), as training needs. Prints compile time
 and steady-state time (median, ``block_until_ready``) separately, and checks the
 JAX result against brute force on a random subset of queries (level, count,
-membership, distinctness).
+membership, distinctness).  ``--build host,device`` also times the other
+``build_index`` (NumPy on the host, or one jitted program on JAX's default device) in the
+same run and checks that both give bitwise the same index; the search uses the first.
 
     flock /tmp/lazyq_bench.lock .venv/bin/python experiments/bench_neighbours.py [--n 1000000] [--skip-scipy]
 """
@@ -101,13 +103,22 @@ def main():
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--check", type=int, default=300, help="queries checked against brute force")
     ap.add_argument("--skip-scipy", action="store_true")
+    ap.add_argument("--build", default="auto",
+                    help="comma-separated build_index paths: auto (the device when JAX's backend is "
+                         "not the CPU), host, device; the first one feeds the search")
     args = ap.parse_args()
+    paths = [{"auto": None, "host": False, "device": True}[b] for b in args.build.split(",")]
+    on_device = paths[0]
     s, g = paper_like_data(args.n)
     n = len(s)
     print(f"N = Q = {n:,}  k={K} radius_s={RS} radius_g={RG} growth={GROWTH:.4f}  devices={jax.devices()}")
 
+    def build(on_device):
+        return jax.block_until_ready(build_index(s, g, k=K, radius_s=RS, radius_g=RG, growth=GROWTH,
+                                                 max_level=0, on_device=on_device))
+
     def run(key):
-        index = build_index(s, g, k=K, radius_s=RS, radius_g=RG, growth=GROWTH, max_level=0)
+        index = build(on_device)
         return index, jax.block_until_ready(search_all(index, key, s, g))
 
     t0 = time.perf_counter()
@@ -116,7 +127,7 @@ def main():
     times, build_t = [], []
     for r in range(args.repeats):
         t0 = time.perf_counter()
-        index = build_index(s, g, k=K, radius_s=RS, radius_g=RG, growth=GROWTH, max_level=0)
+        index = build(on_device)
         t1 = time.perf_counter()
         nb = jax.block_until_ready(search_all(index, jax.random.key(r + 1), s, g))
         t2 = time.perf_counter()
@@ -127,6 +138,19 @@ def main():
           f"= build_index {np.median(build_t):.3f} s + search_all {np.median(times):.3f} s "
           f"(median of {args.repeats}; all: {', '.join(f'{t:.3f}' for t in times)})")
     print(f"  compile (first - steady): {first - steady:.2f} s")
+    for other in paths[1:]:
+        t0 = time.perf_counter()
+        alt = build(other)
+        alt_first = time.perf_counter() - t0
+        alt_t = []
+        for _ in range(args.repeats):
+            t0 = time.perf_counter()
+            alt = build(other)
+            alt_t.append(time.perf_counter() - t0)
+        same = all(np.array_equal(np.asarray(a), np.asarray(b)) for a, b in
+                   zip(jax.tree.leaves(index), jax.tree.leaves(alt))) and index.max_window == alt.max_window
+        print(f"  build_index(on_device={other}): {np.median(alt_t):.3f} s (median of {args.repeats}; "
+              f"first call {alt_first:.2f} s); the same index as on_device={on_device}: {same}")
     level = np.asarray(nb.level)
     count = np.asarray(nb.count)
     print(f"  levels: {np.bincount(level).tolist()}  base |B| mean {count[level == 0].mean():.1f}")

@@ -1,18 +1,24 @@
 #!/usr/bin/env bash
 # The prepared check for a lent GPU (the `device` tool: 15 minutes of device time in all, one
-# command of at most 10 minutes).  What the issues ask of a device, in two commands, each stage
-# bounded so that what finished comes back even when a later stage runs out of time:
+# command of at most 10 minutes).  What the issues ask of a device, as parts run in the order
+# given, each bounded so that what finished comes back even when a later part runs out of time:
 #
 #   bash experiments/device_check.sh lazy     (~9 minutes on an H200)
-#     1. OGBench's pointmaze (issue 24): lazy Q, 3 seeds vmapped, trained and evaluated, then
-#        GCIVL's steps a second at OGBench's 3 x 512 and batch 1024 timed on the same data
-#        (experiments/pointmaze_budget.py --calibrate-only); the run directory (without data
-#        and checkpoints) is copied to $OUT/pm.tgz every 20 s, the log to $OUT/pointmaze.log.
-#     2. The paper-scale neighbour search (issue 22, experiments/bench_neighbours.py) and the
-#        policy's per-step query (bench_neighbours_query.py) on the GPU, with the time left.
+#     OGBench's pointmaze (issue 24): lazy Q, 3 seeds vmapped, trained and evaluated, then
+#     GCIVL's steps a second at OGBench's 3 x 512 and batch 1024 timed on the same data
+#     (experiments/pointmaze_budget.py --calibrate-only); the run directory (without data
+#     and checkpoints) is copied to $OUT/pm.tgz every 20 s, the log to $OUT/pointmaze.log;
+#     then the search and the query below with the time left.
 #   bash experiments/device_check.sh gcivl STEPS   (~3 minutes)
-#     3. GCIVL for STEPS steps (the rate printed by the first command times lazy Q's time,
-#        capped by what is left) on the same seeds' data, 3 seeds vmapped, evaluated: $OUT/pm2.tgz.
+#     GCIVL for STEPS steps (the rate printed by `lazy` times lazy Q's time, capped by what is
+#     left) on the same seeds' data, 3 seeds vmapped, evaluated: $OUT/pm2.tgz.
+#   bash experiments/device_check.sh search [query] [arm]
+#     search: the paper-scale neighbour search (issue 22, experiments/bench_neighbours.py),
+#       build_index on the device and on the host in the same run (bitwise compared);
+#     query: the policy's per-step query (bench_neighbours_query.py);
+#     arm: `arm` at 10x the paper's random moves (issue 23's data lever: 50,000 starts x 2
+#       moves, each stored with 10 goals: the rows, and so the training's cost, of `static4x`),
+#       ARM_SEEDS (default 5) seeds vmapped, trained and evaluated: $OUT/arm10x.tgz.
 #
 # Packages the device image lacks (MuJoCo, MJX, ogbench) and our pinned flax/optax/orbax/chex
 # travel as wheels in .whl (git-ignored; docs/performance.md "One GPU (NVIDIA H200...)" has the
@@ -20,17 +26,22 @@
 #
 #   run(command="bash experiments/device_check.sh lazy", carry=[".whl"], timeout_s=600)
 #   run(command="bash experiments/device_check.sh gcivl 91895", carry=[".whl"], timeout_s=250)
+#   run(command="bash experiments/device_check.sh search arm", carry=[".whl"], timeout_s=600)
 #
 # Environment: DEADLINE_S (default 585: seconds after which nothing new starts), PM_MAX_S
-# (default 100: the cap on the baselines' budget printed by the first command), PM_SEEDS
-# (default 3); for a dry run on a CPU: PM_EXTRA="--preset smoke --calibrate 20" SEARCH_N=100000
-# QUERY_EXTRA="--n-states 2000" SKIP_WHEELS=1 PATH=$PWD/.venv/bin:$PATH bash experiments/device_check.sh lazy
+# (default 100: the cap on the baselines' budget printed by `lazy`), PM_SEEDS (default 3),
+# ARM_SEEDS (default 5), ARM_EXTRA (more study options); for a dry run on a CPU:
+# PM_EXTRA="--preset smoke --calibrate 20" SEARCH_N=100000 QUERY_EXTRA="--n-states 2000"
+# ARM_EXTRA="--set collect.n_starts=500 --set train.cycles=1" SKIP_WHEELS=1
+# PATH=$PWD/.venv/bin:$PATH bash experiments/device_check.sh lazy   (or search query arm)
 set -u
-PART=${1:?"usage: device_check.sh lazy | gcivl STEPS"}
+USAGE="usage: device_check.sh lazy | gcivl STEPS | search [query] [arm]"
+PART=${1:?"$USAGE"}
 T0=$(date +%s)
 DEADLINE_S=${DEADLINE_S:-585}
 PM_MAX_S=${PM_MAX_S:-100}
 PM_SEEDS=${PM_SEEDS:-3}
+ARM_SEEDS=${ARM_SEEDS:-5}
 OUT=${OUT:-/tmp/device_out}
 mkdir -p "$OUT"
 left() { echo $((DEADLINE_S - ($(date +%s) - T0))); }
@@ -49,7 +60,7 @@ snapshot() { tar czf "$OUT/$1.tgz.tmp" --exclude=checkpoints --exclude=data -C /
              && mv "$OUT/$1.tgz.tmp" "$OUT/$1.tgz"; }
 
 if [ "$PART" = gcivl ]; then
-    # 3. GCIVL for the given steps, 3 seeds vmapped, OGBench's evaluation
+    # GCIVL for the given steps, 3 seeds vmapped, OGBench's evaluation
     STEPS=${2:?"usage: device_check.sh gcivl STEPS"}
     ( while sleep 20; do snapshot pm2; done ) &
     SNAP=$!
@@ -59,29 +70,52 @@ if [ "$PART" = gcivl ]; then
     kill $SNAP 2>/dev/null; snapshot pm2
     exit 0
 fi
-[ "$PART" = lazy ] || { echo "usage: device_check.sh lazy | gcivl STEPS"; exit 2; }
-
-# 1. pointmaze: lazy Q, 3 seeds vmapped, OGBench's evaluation; then GCIVL's rate on the same data
-( while sleep 20; do snapshot pm; done ) &
-SNAP=$!
-log "pointmaze: $(left) s left"
-timeout $(( $(left) - 100 )) python3 experiments/pointmaze_budget.py --run-dir /tmp/pm --seeds "$PM_SEEDS" \
-    --methods gcivl --max-seconds "$PM_MAX_S" --calibrate 300 --calibrate-only ${PM_EXTRA:-} \
-    > "$OUT/pointmaze.log" 2>&1
-log "pointmaze: exit $?"
-kill $SNAP 2>/dev/null; snapshot pm
-
-# 2. the neighbour search and the policy query on the GPU (the 2-core CPU's figures: docs/performance.md)
-if [ "$(left)" -gt 30 ]; then
-    log "search: $(left) s left"
-    timeout $(( $(left) < 60 ? $(left) : 60 )) python3 experiments/bench_neighbours.py --repeats 3 \
-        --skip-scipy --check 60 --n "${SEARCH_N:-1000000}" > "$OUT/search.log" 2>&1
-    log "search: exit $?"
+if [ "$PART" = lazy ]; then
+    # 1. pointmaze: lazy Q, 3 seeds vmapped, OGBench's evaluation; then GCIVL's rate on the same data
+    ( while sleep 20; do snapshot pm; done ) &
+    SNAP=$!
+    log "pointmaze: $(left) s left"
+    timeout $(( $(left) - 100 )) python3 experiments/pointmaze_budget.py --run-dir /tmp/pm --seeds "$PM_SEEDS" \
+        --methods gcivl --max-seconds "$PM_MAX_S" --calibrate 300 --calibrate-only ${PM_EXTRA:-} \
+        > "$OUT/pointmaze.log" 2>&1
+    log "pointmaze: exit $?"
+    kill $SNAP 2>/dev/null; snapshot pm
 fi
-if [ "$(left)" -gt 20 ]; then
-    log "query: $(left) s left"
-    timeout "$(left)" python3 experiments/bench_neighbours_query.py --repeats 2 ${QUERY_EXTRA:-} \
-        > "$OUT/query.log" 2>&1
-    log "query: exit $?"
+
+# the neighbour search and the policy query on the GPU (the 2-core CPU's figures: docs/performance.md)
+search() {
+    if [ "$(left)" -gt 30 ]; then
+        log "search: $(left) s left"
+        timeout $(( $(left) < 90 ? $(left) : 90 )) python3 experiments/bench_neighbours.py --repeats 3 \
+            --skip-scipy --check 60 --n "${SEARCH_N:-1000000}" --build auto,host > "$OUT/search.log" 2>&1
+        log "search: exit $?"
+    fi
+}
+query() {
+    if [ "$(left)" -gt 20 ]; then
+        log "query: $(left) s left"
+        timeout "$(left)" python3 experiments/bench_neighbours_query.py --repeats 2 ${QUERY_EXTRA:-} \
+            > "$OUT/query.log" 2>&1
+        log "query: exit $?"
+    fi
+}
+# arm at 10x the paper's moves with static4x's rows, ARM_SEEDS seeds vmapped
+arm() {
+    ( while sleep 20; do snapshot arm10x; done ) &
+    local snap=$!
+    log "arm: $(left) s left"
+    timeout "$(left)" python3 -m lazyq_jax study --task arm --preset static4x --set collect.n_starts=50000 \
+        --set collect.n_goals=10 --seeds "$ARM_SEEDS" --methods lazy --run-dir /tmp/arm10x --no-progress \
+        ${ARM_EXTRA:-} > "$OUT/arm10x.log" 2>&1
+    log "arm: exit $?"
+    kill $snap 2>/dev/null; snapshot arm10x
+}
+
+if [ "$PART" = lazy ]; then
+    search; query
+else
+    for p in "$@"; do
+        case "$p" in search|query|arm) "$p" ;; *) echo "$USAGE"; exit 2 ;; esac
+    done
 fi
 log "done"

@@ -189,3 +189,44 @@ def test_bad_points_raise():
 def test_neighbours_is_a_pytree():
     nb = Neighbours(idx=jnp.zeros((2, 3), jnp.int32), level=jnp.zeros(2, jnp.int32), count=jnp.ones(2, jnp.int32))
     assert len(jax.tree_util.tree_leaves(nb)) == 3
+
+
+def test_cell_thresholds_reproduce_the_float64_floor_at_every_boundary():
+    """The jitted build's cells: counting float32 thresholds must equal the host's float64
+    ``clip(floor((v - lo) / h), 0, n - 1)`` for every float32 ``v``; checked on each cell
+    boundary's float32 neighbours (where float32 arithmetic would disagree) and at random."""
+    from lazyq_jax.neighbours.grid import _cell_thresholds
+
+    rng = np.random.default_rng(0)
+    for lo, h, n in [(-1.0032, 0.25 * RS * 1.001, 140), (-np.pi, 2 * np.pi / 125, 125), (0.3, 0.7, 1)]:
+        edges = (lo + np.arange(n + 1) * h).astype(np.float32)
+        v = np.concatenate([edges, np.nextafter(edges, np.float32(np.inf)),
+                            np.nextafter(edges, np.float32(-np.inf)),
+                            rng.uniform(lo - h, lo + (n + 1) * h, 2000).astype(np.float32)])
+        want = np.clip(np.floor((v.astype(np.float64) - lo) / h), 0, n - 1)
+        got = np.searchsorted(np.asarray(_cell_thresholds(lo, h, n)), v, side="right")
+        np.testing.assert_array_equal(got, want)
+
+
+def test_device_build_equals_the_host_build_bitwise():
+    """``build_index(on_device=True)`` (one jitted program: a device sort) against the NumPy
+    build: every array and static field, with points on cell boundaries, goals at +-pi,
+    fixed bounds with padding to a capacity, and a coarsened grid."""
+    rng = np.random.default_rng(3)
+    h_x, h_y = 0.25 * RS * 1.001, 0.5 * RS * 1.001
+    s = rng.uniform(-1, 1, (3000, 2)).astype(np.float32)
+    s[:120, 0] = (-1 + np.arange(120) * h_x).astype(np.float32)  # on the x-cell edges
+    s[200:260, 1] = np.nextafter((-1 + np.arange(60) * h_y).astype(np.float32), np.float32(-2))
+    s[400] = (-1, -1)  # the lowest point: x0, y0 of the unbounded grid
+    g = rng.uniform(-np.pi, np.pi, 3000).astype(np.float32)
+    g[:50] = np.float32(np.pi)
+    g[50:100] = np.float32(-np.pi)
+    g[100:150] = (-np.pi + np.arange(50) * 2 * np.pi / 125).astype(np.float32)
+    for kw in [dict(max_level=3), dict(bounds=(-1.2, -1.1, 1.3, 1.05), capacity=4100, max_level=6),
+               dict(radius_s=0.002, max_level=0)]:  # 0.002: the dense cell table would be too large
+        host = build_index(s, g, on_device=False, **kw)
+        dev = build_index(s, g, on_device=True, **kw)
+        chex.assert_trees_all_equal(host, dev)
+        assert (host.n_x, host.n_y, host.n_g, host.h_x, host.max_window) == (
+            dev.n_x, dev.n_y, dev.n_g, dev.h_x, dev.max_window)
+    assert host.h_x > 0.25 * 0.002 * 1.001  # the last case did coarsen
