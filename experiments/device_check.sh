@@ -18,7 +18,8 @@
 #     query: the policy's per-step query (bench_neighbours_query.py);
 #     arm: `arm` at 10x the paper's random moves (issue 23's data lever: 50,000 starts x 2
 #       moves, each stored with 10 goals: the rows, and so the training's cost, of `static4x`),
-#       ARM_SEEDS (default 5) seeds vmapped, trained and evaluated: $OUT/arm10x.tgz.
+#       ARM_SEEDS (default 5) seeds vmapped, trained and evaluated: $OUT/arm_50000_10.tgz;
+#       ARM_RUNS="20000:25 50000:25" runs other STARTS:GOALS one after the other.
 #
 # Packages the device image lacks (MuJoCo, MJX, ogbench) and our pinned flax/optax/orbax/chex
 # travel as wheels in .whl (git-ignored; docs/performance.md "One GPU (NVIDIA H200...)" has the
@@ -30,9 +31,9 @@
 #
 # Environment: DEADLINE_S (default 585: seconds after which nothing new starts), PM_MAX_S
 # (default 100: the cap on the baselines' budget printed by `lazy`), PM_SEEDS (default 3),
-# ARM_SEEDS (default 5), ARM_EXTRA (more study options); for a dry run on a CPU:
+# ARM_SEEDS (default 5), ARM_RUNS, ARM_EXTRA (more study options); for a dry run on a CPU:
 # PM_EXTRA="--preset smoke --calibrate 20" SEARCH_N=100000 QUERY_EXTRA="--n-states 2000"
-# ARM_EXTRA="--set collect.n_starts=500 --set train.cycles=1" SKIP_WHEELS=1
+# ARM_RUNS=500:10 ARM_EXTRA="--set train.cycles=1" SKIP_WHEELS=1
 # PATH=$PWD/.venv/bin:$PATH bash experiments/device_check.sh lazy   (or search query arm)
 set -u
 USAGE="usage: device_check.sh lazy | gcivl STEPS | search [query] [arm]"
@@ -99,16 +100,20 @@ query() {
         log "query: exit $?"
     fi
 }
-# arm at 10x the paper's moves with static4x's rows, ARM_SEEDS seeds vmapped
+# `arm` from static4x with STARTS starts (2 moves each) stored with GOALS goals, for each
+# STARTS:GOALS of ARM_RUNS (default 50000:10, 10x the moves), ARM_SEEDS seeds vmapped
 arm() {
-    ( while sleep 20; do snapshot arm10x; done ) &
-    local snap=$!
-    log "arm: $(left) s left"
-    timeout "$(left)" python3 -m lazyq_jax study --task arm --preset static4x --set collect.n_starts=50000 \
-        --set collect.n_goals=10 --seeds "$ARM_SEEDS" --methods lazy --run-dir /tmp/arm10x --no-progress \
-        ${ARM_EXTRA:-} > "$OUT/arm10x.log" 2>&1
-    log "arm: exit $?"
-    kill $snap 2>/dev/null; snapshot arm10x
+    for run in ${ARM_RUNS:-50000:10}; do
+        local starts=${run%:*} goals=${run#*:} name=arm_${run%:*}_${run#*:}
+        ( while sleep 20; do snapshot "$name"; done ) &
+        local snap=$!
+        log "arm $starts starts x $goals goals: $(left) s left"
+        timeout "$(left)" python3 -m lazyq_jax study --task arm --preset static4x \
+            --set collect.n_starts="$starts" --set collect.n_goals="$goals" --seeds "$ARM_SEEDS" \
+            --methods lazy --run-dir "/tmp/$name" --no-progress ${ARM_EXTRA:-} > "$OUT/$name.log" 2>&1
+        log "arm $starts x $goals: exit $?"
+        kill $snap 2>/dev/null; snapshot "$name"
+    done
 }
 
 if [ "$PART" = lazy ]; then
