@@ -190,14 +190,22 @@ def build_index(data_s, data_g, *, k=20, radius_s=0.06, radius_g=0.1, growth=2 *
         # Entry copies: a point with g-cell c lies in g-blocks c-D+1 .. c (block b = cells
         # b..b+D-1).  Sort by (y-cell, x-cell) once, then stably by block (a radix sort on
         # small ints): the entries in order of (cell, point index).
-        by_yx = stable_order(iy * n_x + ix)
-        blocks = ((ig[by_yx, None] - np.arange(D)[None, :]) % n_g).ravel()
-        order = stable_order(blocks)
+        yx = iy * n_x + ix
+        by_yx = stable_order(yx)
+        blocks = ig[by_yx].astype(np.int32)[:, None] - np.arange(D, dtype=np.int32)[None, :]
+        blocks[blocks < 0] += n_g
+        blocks = blocks.ravel()
+        order = (np.argsort(blocks.astype(np.uint16), kind="stable") if n_g <= 1 << 16
+                 else stable_order(blocks))
         src = by_yx[order // D]
-        cell = (blocks[order] * n_y + iy[src]) * n_x + ix[src]
-        n_cells = n_g * n_y * n_x
-        offsets = np.zeros(n_cells + 1, np.int64)
-        np.cumsum(np.bincount(cell, minlength=n_cells), out=offsets[1:])
+        # Entries a cell: block b's cell yx holds the points of g-cells b .. b+D-1 in yx.
+        n_yx = n_y * n_x
+        per_g = np.bincount(ig * n_yx + yx, minlength=n_g * n_yx).reshape(n_g, n_yx)
+        per_block = per_g.copy()
+        for d in range(1, D):
+            per_block += np.roll(per_g, -d, axis=0)
+        offsets = np.zeros(n_g * n_yx + 1, np.int64)
+        np.cumsum(per_block.ravel(), out=offsets[1:])
         own_window = _max_window(offsets, n_x, h_x, r_window)
         pad = D * (capacity - n)  # never addressed: every cell range ends before D * n
         cols = np.zeros((3, D * capacity + W), np.float32)  # + W: every item is one contiguous slice
