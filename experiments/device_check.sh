@@ -12,14 +12,18 @@
 #   bash experiments/device_check.sh gcivl STEPS   (~3 minutes)
 #     GCIVL for STEPS steps (the rate printed by `lazy` times lazy Q's time, capped by what is
 #     left) on the same seeds' data, 3 seeds vmapped, evaluated: $OUT/pm2.tgz.
-#   bash experiments/device_check.sh search [query] [arm]
+#   bash experiments/device_check.sh search [query] [arm] [layouts]   (any of these, in order)
 #     search: the paper-scale neighbour search (issue 22, experiments/bench_neighbours.py),
 #       build_index on the device and on the host in the same run (bitwise compared);
 #     query: the policy's per-step query (bench_neighbours_query.py);
 #     arm: `arm` at 10x the paper's random moves (issue 23's data lever: 50,000 starts x 2
 #       moves, each stored with 10 goals: the rows, and so the training's cost, of `static4x`),
 #       ARM_SEEDS (default 5) seeds vmapped, trained and evaluated: $OUT/arm_50000_10.tgz;
-#       ARM_RUNS="20000:25 50000:25" runs other STARTS:GOALS one after the other.
+#       ARM_RUNS="20000:25 50000:25" runs other STARTS:GOALS one after the other;
+#     layouts: the policy query's compile on the GPU for `static4x` data (its evaluation's
+#       compile ran over 6 minutes on an H200, docs/arm.md): the 5 seeds' data collected
+#       (the study stopped once they are written), then experiments/policy_layouts.py
+#       (each seed's layout; the stacked query compiled on seed 1's and on seed 0's layout).
 #
 # Packages the device image lacks (MuJoCo, MJX, ogbench) and our pinned flax/optax/orbax/chex
 # travel as wheels in .whl (git-ignored; docs/performance.md "One GPU (NVIDIA H200...)" has the
@@ -36,7 +40,7 @@
 # ARM_RUNS=500:10 ARM_EXTRA="--set train.cycles=1" SKIP_WHEELS=1
 # PATH=$PWD/.venv/bin:$PATH bash experiments/device_check.sh lazy   (or search query arm)
 set -u
-USAGE="usage: device_check.sh lazy | gcivl STEPS | search [query] [arm]"
+USAGE="usage: device_check.sh lazy | gcivl STEPS | search | query | arm | layouts (any of the last four, in order)"
 PART=${1:?"$USAGE"}
 T0=$(date +%s)
 DEADLINE_S=${DEADLINE_S:-585}
@@ -115,12 +119,27 @@ arm() {
         kill $snap 2>/dev/null; snapshot "$name"
     done
 }
+# the policy query's compile for static4x's data on this device (seeds 0-4)
+layouts() {
+    log "layouts: $(left) s left"
+    rm -rf /tmp/arm_layouts
+    python3 -m lazyq_jax study --task arm --preset static4x --seeds 5 --methods lazy \
+        --run-dir /tmp/arm_layouts --no-progress ${ARM_EXTRA:-} > "$OUT/layouts_data.log" 2>&1 &
+    local study=$!
+    while kill -0 $study 2>/dev/null && ! grep -q "lazy: block\|training" "$OUT/layouts_data.log" \
+          && [ "$(ls /tmp/arm_layouts/data/4/dataset.npz 2>/dev/null)" = "" ]; do sleep 2; done
+    sleep 5; kill $study 2>/dev/null; wait $study 2>/dev/null
+    log "layouts: data written"
+    timeout "$(left)" python3 experiments/policy_layouts.py /tmp/arm_layouts --seeds 0,1,2,3,4 \
+        --rotated-first > "$OUT/layouts.log" 2>&1
+    log "layouts: exit $?"
+}
 
 if [ "$PART" = lazy ]; then
     search; query
 else
     for p in "$@"; do
-        case "$p" in search|query|arm) "$p" ;; *) echo "$USAGE"; exit 2 ;; esac
+        case "$p" in search|query|arm|layouts) "$p" ;; *) echo "$USAGE"; exit 2 ;; esac
     done
 fi
 log "done"

@@ -52,6 +52,9 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("run", help="a run directory with data/<seed>/dataset.npz and run.json")
     ap.add_argument("--seeds", default="0,1,2")
+    ap.add_argument("--rotated-first", action="store_true",
+                    help="compile the stack with the second seed first before the seeds' own order "
+                         "(when one order's program may take long to compile, e.g. on a GPU)")
     args = ap.parse_args()
     seeds = [int(x) for x in args.seeds.split(",")]
     cfg = tasks.config_from_dict(json.load(open(f"{args.run}/run.json"))["config"])
@@ -73,11 +76,12 @@ def main():
                           n_valid=len(data.s))
         print(f"seed {seed}: {len(data.s):,} rows, built in {time.perf_counter() - t:.1f} s; {describe(ix)}")
         indices.append(ix)
-    for first, order in ((seeds[0], indices), (seeds[1 % len(seeds)], indices[1:] + indices[:1])):
+    orders = [(seeds[0], indices), (seeds[1 % len(seeds)], indices[1:] + indices[:1])]
+    for first, order in (orders[::-1] if args.rotated_first else orders):
         stacked = stack_policy_indices(order)
         print(f"stacked on seed {first}'s layout: {describe(stacked)}")
         print(f"  jit(vmap(query_policy)) compile, {len(seeds)} seeds x {BATCH} queries: "
-              f"{compile_seconds(stacked):.1f} s ({jax.devices()[0].platform})")
+              f"{compile_seconds(stacked):.1f} s ({jax.devices()[0].platform})", flush=True)
 
 
 if __name__ == "__main__":
