@@ -230,3 +230,5 @@ def test_device_build_equals_the_host_build_bitwise():
         assert (host.n_x, host.n_y, host.n_g, host.h_x, host.max_window) == (
             dev.n_x, dev.n_y, dev.n_g, dev.h_x, dev.max_window)
     assert host.h_x > 0.25 * 0.002 * 1.001  # the last case did coarsen
+    flat = np.zeros_like(s)  # one x-cell and one y-cell: no thresholds at all
+    chex.assert_trees_all_equal(build_index(flat, g, on_device=False), build_index(flat, g, on_device=True))
