@@ -172,7 +172,8 @@ def build_index(data_s, data_g, *, k=20, radius_s=0.06, radius_g=0.1, growth=2 *
     h_g = 2 * np.pi / n_g
     # float32 slack for the stencil (>> rounding of coordinates, << the 0.1% cell slack).
     margin = 2.0**-18 * (max(abs(x0), abs(y0), abs(x1), abs(y1)) + 1.0)
-    r_window = radius_s * growth**max_level * (1 + 1e-5) + margin
+    # x-cells one range at max_level can span (query_neighbours' static window)
+    w_cells = min(int(np.ceil(2 * (radius_s * growth**max_level * (1 + 1e-5) + margin) / h_x)) + 1, n_x)
     if on_device is None:
         on_device = jax.default_backend() != "cpu"
     if on_device:
@@ -181,8 +182,7 @@ def build_index(data_s, data_g, *, k=20, radius_s=0.06, radius_g=0.1, growth=2 *
         t_g = _cell_thresholds(-np.pi, h_g, n_g)
         cols, orig, offsets, own_window = _build_on_device(
             jnp.asarray(s), jnp.asarray(g), t_x, t_y, t_g, n_x=n_x, n_y=n_y, n_g=n_g,
-            capacity=capacity, w_cells=_window_cells(n_x, h_x, r_window))
-        own_window = max(int(own_window), 1)
+            capacity=capacity, w_cells=w_cells)
     else:
         ix = np.clip(np.floor((x - x0) / h_x), 0, n_x - 1).astype(np.int64)
         iy = np.clip(np.floor((y - y0) / h_y), 0, n_y - 1).astype(np.int64)
@@ -206,13 +206,14 @@ def build_index(data_s, data_g, *, k=20, radius_s=0.06, radius_g=0.1, growth=2 *
             per_block += np.roll(per_g, -d, axis=0)
         offsets = np.zeros(n_g * n_yx + 1, np.int64)
         np.cumsum(per_block.ravel(), out=offsets[1:])
-        own_window = _max_window(offsets, n_x, h_x, r_window)
+        own_window = _max_window(offsets, n_x, w_cells)
         pad = D * (capacity - n)  # never addressed: every cell range ends before D * n
         cols = np.zeros((3, D * capacity + W), np.float32)  # + W: every item is one contiguous slice
         cols[0, :D * n], cols[1, :D * n], cols[2, :D * n] = s[src, 0], s[src, 1], g[src]
         cols = jnp.asarray(cols)
         orig = jnp.asarray(np.concatenate([src.astype(np.int32), np.zeros(pad, np.int32)]))
         offsets = jnp.asarray(offsets.astype(np.int32))
+    own_window = max(int(own_window), 1)
     if max_window is None:
         max_window = own_window
     elif max_window < own_window:
@@ -225,18 +226,14 @@ def build_index(data_s, data_g, *, k=20, radius_s=0.06, radius_g=0.1, growth=2 *
     )
 
 
-def _window_cells(n_x, h_x, r):
-    """x-cells one range of radius ``r`` can span."""
-    return min(int(np.ceil(2 * r / h_x)) + 1, n_x)
-
-
-def _max_window(offsets, n_x, h_x, r):
-    """Most entries in the x-cells one range of radius ``r`` can span, over all rows."""
-    w_cells = _window_cells(n_x, h_x, r)
-    start = np.arange(offsets.shape[0] - 1)
+def _max_window(offsets, n_x, w_cells):
+    """Most entries in ``w_cells`` consecutive x-cells of one row, over all rows (NumPy or,
+    under ``jit``, JAX offsets)."""
+    xp = jnp if isinstance(offsets, jax.Array) else np
+    start = xp.arange(offsets.shape[0] - 1)
     i = start % n_x
-    end = start - i + np.minimum(i + w_cells, n_x)
-    return max(int((offsets[end] - offsets[start]).max()), 1)
+    end = start - i + xp.minimum(i + w_cells, n_x)
+    return (offsets[end] - offsets[start]).max()
 
 
 def _cell_thresholds(lo: float, h: float, n: int) -> jax.Array:
@@ -263,7 +260,7 @@ def _cell_thresholds(lo: float, h: float, n: int) -> jax.Array:
 def _build_on_device(s, g, t_x, t_y, t_g, *, n_x, n_y, n_g, capacity, w_cells):
     """The host build's arrays in one program: the cells (thresholds), a stable device sort
     of the ``D n`` entries by cell (ties in point order: the host's order), the offsets
-    (``searchsorted``) and the window that the host's :func:`_max_window` finds."""
+    (``searchsorted``) and :func:`_max_window`."""
     n = s.shape[0]
     ix = jnp.searchsorted(t_x, s[:, 0], side="right")
     iy = jnp.searchsorted(t_y, s[:, 1], side="right")
@@ -277,10 +274,7 @@ def _build_on_device(s, g, t_x, t_y, t_g, *, n_x, n_y, n_g, capacity, w_cells):
     cols = jnp.zeros((3, D * capacity + W), jnp.float32).at[:, :D * n].set(
         jnp.stack([s[src, 0], s[src, 1], g[src]]))
     orig = jnp.zeros((D * capacity,), jnp.int32).at[:D * n].set(src)
-    start = jnp.arange(n_cells)
-    i = start % n_x
-    end = start - i + jnp.minimum(i + w_cells, n_x)
-    return cols, orig, offsets, jnp.max(offsets[end] - offsets[start])
+    return cols, orig, offsets, _max_window(offsets, n_x, w_cells)
 
 
 # ----------------------------------------------------------------------------- jitted core
