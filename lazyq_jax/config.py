@@ -128,6 +128,11 @@ class TrainConfig:
     ``value_init``: where V starts (the last layer's initial bias; 0, the paper's, by
     default).  ``r_min / (1 - gamma)`` is a pessimistic start: V rises from below (on the
     maze it still ends above V* at the pairs across walls: ``docs/pointmaze.md``).
+    ``relabel_every``: on trajectory data with state goals (``Transitions.traj_last``), every
+    that many cycles the lazy agent draws every row a fresh goal as OGBench's value goals
+    (:mod:`lazyq_jax.agents.goals`) and finds the neighbourhoods anew (one search each
+    time); the first ``relabel_every`` cycles train on the rows' own goals.  0 (default):
+    the rows' goals throughout.
     """
 
     gamma: float = 0.9
@@ -143,8 +148,10 @@ class TrainConfig:
     target_batch_size: int = 65536
     target_max: str = "set"
     value_init: float = 0.0
+    relabel_every: int = 0
 
     def __post_init__(self) -> None:
+        _counts(self, "relabel_every", minimum=0)
         _check(self.target_max in ("set", "data"),
                f"TrainConfig.target_max must be 'set' (Eq. 7 over the action set) or 'data' (over "
                f"the neighbourhood's actions), got {self.target_max!r}")

@@ -9,7 +9,8 @@ from __future__ import annotations
 import jax
 
 _TAGS = {"collect": 0x636F6C6C, "neighbours": 0x6E656967, "train": 0x74726169,
-         "resample": 0x72657361, "eval": 0x6576616C, "online": 0x6F6E6C6E}
+         "resample": 0x72657361, "eval": 0x6576616C, "online": 0x6F6E6C6E,
+         "relabel": 0x72656C61}
 
 
 def purpose_key(seed: int, purpose: str) -> jax.Array:

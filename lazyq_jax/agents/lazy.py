@@ -5,7 +5,8 @@ action value model Q(s, a, g) ~ alpha + beta.a (Eq. 4), behind the agent interfa
   transition (:func:`lazyq_jax.neighbours.find_neighbours`; for 2-D states with angle
   goals the grid over the task's fixed bounds, so that seeds share compiled passes);
   they depend on the data only, so they are found once (``train.resample_neighbours``:
-  a fresh k-subset every cycle).
+  a fresh k-subset every cycle; ``train.relabel_every``: every row a fresh goal, drawn as
+  OGBench's value goals from its trajectory, and new neighbourhoods, every that many cycles).
 * ``run_block``: one cycle of fitted value iteration (:func:`lazyq_jax.train.make_train`):
   targets of Eq. (11) (or Eq. 13 with ``train.double_dqn``) from the network frozen at
   the start of the cycle, then ``train.epochs`` epochs of Adam on Eq. (10).
@@ -26,6 +27,7 @@ import numpy as np
 from jax.sharding import Mesh
 
 from lazyq_jax.agents.base import Agent, Problem
+from lazyq_jax.agents.goals import VALUE_GOALS, sample_goal_rows, uses_trajectories
 from lazyq_jax.config import NeighbourConfig, TrainConfig
 from lazyq_jax.keys import purpose_key
 from lazyq_jax.local_model import epanechnikov_weights
@@ -50,11 +52,20 @@ class LazyConfig:
 @dataclasses.dataclass
 class Neighbourhoods:
     """``idx [N, k]`` of every transition's neighbourhood, its growth ``level [N]`` and, with
-    ``neighbours.fit_weights="epanechnikov"``, the local fits' ``weights [N, k]``."""
+    ``neighbours.fit_weights="epanechnikov"``, the local fits' ``weights [N, k]``; with
+    ``train.relabel_every``, past its first period, the rows' fresh goals ``g`` and their
+    rewards ``r`` and ``done`` (the neighbourhoods are those of the fresh goals)."""
 
     idx: jax.Array
     level: jax.Array
     weights: jax.Array | None = None
+    g: jax.Array | None = None
+    r: jax.Array | None = None
+    done: jax.Array | None = None
+
+    def on(self, data: Transitions) -> Transitions:
+        """``data`` with the fresh goals, if any."""
+        return data if self.g is None else data.replace(g=self.g, r=self.r, done=self.done)
 
 
 class LazyAgent(Agent):
@@ -76,6 +87,8 @@ class LazyAgent(Agent):
     # --- training
     def init(self, key, data: Transitions):
         self.check_k(data)
+        if self.config.train.relabel_every:
+            uses_trajectories("trajectories", data, "lazy Q's train.relabel_every")
         return self.trainer.init(key, data)
 
     def check_k(self, data: Transitions) -> None:
@@ -94,30 +107,49 @@ class LazyAgent(Agent):
                              "local_model")
 
     def refresh(self, block: int) -> bool:
-        return self.config.train.resample_neighbours
+        every = self.config.train.relabel_every
+        return self.config.train.resample_neighbours or (every > 0 and block % every == 0)
+
+    def fresh_goals(self, seed: int, data: Transitions, n_valid: int, block: int):
+        """``(g, r, done)`` of every row for block ``block`` (``train.relabel_every``): ``None``
+        without it, the rows' own in the first period (the same pytree: one compiled cycle),
+        else OGBench's value goals drawn with the seed's ``relabel`` key and the period's
+        number (so a resumed run draws the same)."""
+        every = self.config.train.relabel_every
+        if every == 0:
+            return None
+        if block < every:
+            return data.g, data.r, data.done
+        key = jax.random.fold_in(purpose_key(seed, "relabel"), block // every)
+        return _fresh_goals(key, jnp.asarray(data.s), jnp.asarray(data.traj_last), jnp.int32(n_valid),
+                            discount=self.config.train.gamma)
 
     def prepare(self, seed: int, data: Transitions, n_valid: int, block: int) -> Neighbourhoods:
         """The neighbourhoods of the first ``n_valid`` rows of ``data`` (rows past it: 0).
         Block 0 draws them with the seed's ``neighbours`` key; with
-        ``resample_neighbours`` block ``b > 0`` draws a fresh sample with its own key."""
+        ``resample_neighbours`` block ``b > 0`` draws a fresh sample with its own key; with
+        ``relabel_every`` the rows get fresh goals first (:meth:`fresh_goals`)."""
         key = purpose_key(seed, "neighbours")
         if self.config.train.resample_neighbours and block > 0:
             key = jax.random.fold_in(purpose_key(seed, "resample"), block)
+        fresh = self.fresh_goals(seed, data, n_valid, block)
+        goals = dict(zip(("g", "r", "done"), fresh)) if fresh is not None else {}
+        data_g = goals.get("g", data.g)
         nc, n = self.config.neighbours, int(n_valid)
         x = self.search_space(data.s)
-        if is_grid_space(x, data.g):
-            index = build_index(np.asarray(x[:n]), np.asarray(data.g[:n]), k=nc.k,
+        if is_grid_space(x, data_g):
+            index = build_index(np.asarray(x[:n]), np.asarray(data_g[:n]), k=nc.k,
                                 radius_s=nc.radius_s, radius_g=nc.radius_g, growth=nc.growth,
                                 max_level=0, capacity=data.size, bounds=self.problem.search_bounds)
-            nb = search_all(index, key, x, data.g, mesh=self.mesh, n_queries=n)
-            return Neighbourhoods(nb.idx, nb.level, self.fit_weights(x, data.g, nb.idx, nb.level))
-        g = None if data.g is None else data.g[:n]
+            nb = search_all(index, key, x, data_g, mesh=self.mesh, n_queries=n)
+            return Neighbourhoods(nb.idx, nb.level, self.fit_weights(x, data_g, nb.idx, nb.level), **goals)
+        g = None if data_g is None else data_g[:n]
         nb = find_neighbours(key, x[:n], g, x[:n], g, k=nc.k, radius_s=nc.radius_s,
                              radius_g=nc.radius_g, growth=nc.growth, mesh=self.mesh)
         pad = data.size - n
         idx = jnp.concatenate([nb.idx, jnp.zeros((pad, nc.k), jnp.int32)])
         level = jnp.concatenate([nb.level, jnp.zeros((pad,), jnp.int32)])
-        return Neighbourhoods(idx, level, self.fit_weights(x, data.g, idx, level))
+        return Neighbourhoods(idx, level, self.fit_weights(x, data_g, idx, level), **goals)
 
     def fit_weights(self, x, g, idx, level):
         """The local fits' weights ``[N, k]`` (``neighbours.fit_weights``; ``None`` when
@@ -135,6 +167,7 @@ class LazyAgent(Agent):
         return s if phi is None else np.asarray(jax.jit(phi)(jnp.asarray(s, jnp.float32)))
 
     def run_block(self, state, data: Transitions, aux: Neighbourhoods, n_valid=None):
+        data = aux.on(data)
         state, metrics = self.trainer.run_cycle(state, data, aux.idx, n_valid, aux.weights)
         n = data.r.shape[0] if n_valid is None else n_valid
         valid = (jnp.arange(data.r.shape[0]) < n).astype(jnp.float32)
@@ -150,7 +183,7 @@ class LazyAgent(Agent):
             raise ValueError("lazy Q's train needs the neighbourhoods: train(key, data, aux=idx) "
                              "with idx = find_neighbours(...).idx")
         if isinstance(aux, Neighbourhoods):
-            return self.trainer.train(key, data, aux.idx, n_valid, aux.weights)
+            return self.trainer.train(key, aux.on(data), aux.idx, n_valid, aux.weights)
         if self.config.neighbours.fit_weights != "uniform":
             raise ValueError("neighbours.fit_weights needs the neighbourhoods' levels: pass "
                              "aux=agent.prepare(seed, data, n_valid, 0)")
@@ -198,6 +231,15 @@ class LazyAgent(Agent):
 def _weights(x, g, idx, level, *, radius_s, radius_g, growth):
     return epanechnikov_weights(x[idx], x, None if g is None else g[idx], g, level,
                                 radius_s=radius_s, radius_g=radius_g, growth=growth)
+
+
+@partial(jax.jit, static_argnames=("discount",))
+def _fresh_goals(key, s, traj_last, n_valid, *, discount):
+    """Every row's fresh value goal (OGBench's mix, :func:`sample_goal_rows`) and its reward."""
+    rows = jnp.arange(s.shape[0], dtype=jnp.int32)
+    goal = sample_goal_rows(key, rows, traj_last, n_valid, VALUE_GOALS, discount)
+    success = goal == rows
+    return s[goal], success.astype(jnp.float32) - 1.0, success
 
 
 def make(config: LazyConfig | None, problem: Problem, *, mesh: Mesh | None = None) -> LazyAgent:
