@@ -16,7 +16,8 @@ from lazyq_jax.agents.goals import (
     sample_goal_rows,
     uses_trajectories,
 )
-from lazyq_jax.config import ConfigError
+from lazyq_jax.agents import lazy
+from lazyq_jax.config import ConfigError, NeighbourConfig, TrainConfig
 from lazyq_jax.types import Transitions
 
 N_TRAJ, LENGTH = 40, 250
@@ -106,3 +107,57 @@ def test_agents_train_on_trajectory_goals(name):
     state, metrics = jax.jit(lambda st: agent.run_block(st, data))(state)
     assert int(metrics["steps"]) == 3
     assert all(np.isfinite(np.asarray(v)).all() for v in jax.tree.leaves(metrics))
+
+
+def test_lazy_relabel_every_draws_fresh_goals_per_period():
+    """``train.relabel_every``: the first period keeps the rows' own goals (the plain agent's
+    neighbourhoods bitwise); later periods draw every row an OGBench value goal from its
+    trajectory (the same draw within a period, a new one in the next), with its reward, and
+    the neighbourhoods of those goals; the block trains on them."""
+    n_traj, length = 10, 50
+    n = n_traj * length
+    idx = np.arange(n)
+    s = np.stack([idx, idx // length], -1).astype(np.float32)
+    data = Transitions(s=jnp.asarray(s), a=jnp.asarray(np.random.default_rng(0).uniform(-1, 1, (n, 2)),
+                                                       jnp.float32),
+                       s_next=jnp.asarray(s + 1), r=-jnp.ones(n), g=jnp.asarray(s[::-1].copy()),
+                       done=jnp.zeros(n, bool),
+                       traj_last=jnp.asarray((idx // length + 1) * length - 1, jnp.int32))
+    nc = NeighbourConfig(k=4, radius_s=2.0, radius_g=3.0, local_model="action")
+
+    def make(every):
+        return lazy.make(lazy.LazyConfig(train=TrainConfig(cycles=7, width=8, depth=2, batch_size=100,
+                                                           gamma=0.99, relabel_every=every),
+                                         neighbours=nc), Problem(action_length=1.0, action_set="box"))
+
+    agent, plain = make(3), make(0)
+    assert [agent.refresh(b) for b in range(7)] == [True, False, False, True, False, False, True]
+    first, ref = agent.prepare(0, data, n, 0), plain.prepare(0, data, n, 0)
+    np.testing.assert_array_equal(np.asarray(first.idx), np.asarray(ref.idx))
+    np.testing.assert_array_equal(np.asarray(first.g), np.asarray(data.g))
+    assert ref.g is None
+    p3, p5, p6 = (agent.prepare(0, data, n, b) for b in (3, 5, 6))
+    np.testing.assert_array_equal(np.asarray(p3.g), np.asarray(p5.g))
+    assert np.mean(np.asarray(p3.g) != np.asarray(p6.g)) > 0.5
+    for nb in (p3, p6):
+        goal = np.asarray(nb.g[:, 0]).astype(int)  # the goal's row (the state is its index)
+        np.testing.assert_array_equal(np.asarray(nb.g), s[goal])
+        success = goal == idx
+        np.testing.assert_array_equal(np.asarray(nb.done), success)
+        np.testing.assert_array_equal(np.asarray(nb.r), success.astype(np.float32) - 1)
+        assert abs(success.mean() - 0.2) < 0.1  # p_cur 0.2 (+ trajectory ends): 500 rows
+        same_traj = (goal >= idx) & (goal // length == idx // length)
+        assert 0.5 < same_traj.mean() < 0.85  # 0.2 + 0.5 + the random draws in the trajectory
+        # the neighbourhoods are those of the fresh goals (the plain agent on relabelled data)
+        fresh = data.replace(g=nb.g, r=nb.r, done=nb.done)
+        np.testing.assert_array_equal(np.asarray(nb.idx), np.asarray(plain.prepare(0, fresh, n, 0).idx))
+    state = agent.init(jax.random.PRNGKey(0), data)
+    _, trained = agent.run_block(state, data, p3)
+    _, on_fresh = plain.run_block(state, data.replace(g=p3.g, r=p3.r, done=p3.done),
+                                  lazy.Neighbourhoods(p3.idx, p3.level))
+    _, on_rows = plain.run_block(state, data, lazy.Neighbourhoods(p3.idx, p3.level))
+    assert float(trained["loss"]) == float(on_fresh["loss"]) != float(on_rows["loss"])
+    with pytest.raises(ValueError, match="relabel_every"):
+        agent.init(jax.random.PRNGKey(0), data.replace(traj_last=None))
+    with pytest.raises(ConfigError, match="relabel_every"):
+        TrainConfig(relabel_every=-1)
