@@ -100,8 +100,15 @@ def goal_batches(data: Transitions, idx: jax.Array, key: jax.Array, n_valid: jax
     (and the reward and ``done`` of those goals) and with fresh actor goals."""
     k_value, k_actor = jax.random.split(key)
     rows = take(data, idx)
-    g_value = sample_goal_rows(k_value, idx, data.traj_last, n_valid, value, discount)
+    g, r, done = fresh_goals(data, idx, k_value, n_valid, discount, value)
     g_actor = sample_goal_rows(k_actor, idx, data.traj_last, n_valid, actor, discount)
-    success = g_value == idx
-    value_batch = rows.replace(g=data.s[g_value], r=success.astype(jnp.float32) - 1.0, done=success)
-    return value_batch, rows.replace(g=data.s[g_actor])
+    return rows.replace(g=g, r=r, done=done), rows.replace(g=data.s[g_actor])
+
+
+def fresh_goals(data: Transitions, idx: jax.Array, key: jax.Array, n_valid: jax.Array,
+                discount: float, mix: GoalMix = VALUE_GOALS) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """``(g, r, done)`` of rows ``idx`` with fresh goals drawn from ``mix``: the goal row's
+    state, ``r = success - 1`` and ``done = success`` (module docstring)."""
+    goal = sample_goal_rows(key, idx, data.traj_last, n_valid, mix, discount)
+    success = goal == idx
+    return data.s[goal], success.astype(jnp.float32) - 1.0, success

@@ -27,7 +27,7 @@ import numpy as np
 from jax.sharding import Mesh
 
 from lazyq_jax.agents.base import Agent, Problem
-from lazyq_jax.agents.goals import VALUE_GOALS, sample_goal_rows, uses_trajectories
+from lazyq_jax.agents.goals import fresh_goals, uses_trajectories
 from lazyq_jax.config import NeighbourConfig, TrainConfig
 from lazyq_jax.keys import purpose_key
 from lazyq_jax.local_model import epanechnikov_weights
@@ -110,30 +110,30 @@ class LazyAgent(Agent):
         every = self.config.train.relabel_every
         return self.config.train.resample_neighbours or (every > 0 and block % every == 0)
 
-    def fresh_goals(self, seed: int, data: Transitions, n_valid: int, block: int):
-        """``(g, r, done)`` of every row for block ``block`` (``train.relabel_every``): ``None``
+    def goals_for(self, seed: int, data: Transitions, n_valid: int, block: int) -> dict:
+        """``{g, r, done}`` of every row for block ``block`` (``train.relabel_every``): empty
         without it, the rows' own in the first period (the same pytree: one compiled cycle),
         else OGBench's value goals drawn with the seed's ``relabel`` key and the period's
         number (so a resumed run draws the same)."""
         every = self.config.train.relabel_every
         if every == 0:
-            return None
+            return {}
         if block < every:
-            return data.g, data.r, data.done
+            return {"g": data.g, "r": data.r, "done": data.done}
         key = jax.random.fold_in(purpose_key(seed, "relabel"), block // every)
-        return _fresh_goals(key, jnp.asarray(data.s), jnp.asarray(data.traj_last), jnp.int32(n_valid),
-                            discount=self.config.train.gamma)
+        g, r, done = _fresh_goals(data, jnp.arange(data.size, dtype=jnp.int32), key, jnp.int32(n_valid),
+                                  discount=self.config.train.gamma)
+        return {"g": g, "r": r, "done": done}
 
     def prepare(self, seed: int, data: Transitions, n_valid: int, block: int) -> Neighbourhoods:
         """The neighbourhoods of the first ``n_valid`` rows of ``data`` (rows past it: 0).
         Block 0 draws them with the seed's ``neighbours`` key; with
         ``resample_neighbours`` block ``b > 0`` draws a fresh sample with its own key; with
-        ``relabel_every`` the rows get fresh goals first (:meth:`fresh_goals`)."""
+        ``relabel_every`` the rows get fresh goals first (:meth:`goals_for`)."""
         key = purpose_key(seed, "neighbours")
         if self.config.train.resample_neighbours and block > 0:
             key = jax.random.fold_in(purpose_key(seed, "resample"), block)
-        fresh = self.fresh_goals(seed, data, n_valid, block)
-        goals = dict(zip(("g", "r", "done"), fresh)) if fresh is not None else {}
+        goals = self.goals_for(seed, data, n_valid, block)
         data_g = goals.get("g", data.g)
         nc, n = self.config.neighbours, int(n_valid)
         x = self.search_space(data.s)
@@ -233,13 +233,7 @@ def _weights(x, g, idx, level, *, radius_s, radius_g, growth):
                                 radius_s=radius_s, radius_g=radius_g, growth=growth)
 
 
-@partial(jax.jit, static_argnames=("discount",))
-def _fresh_goals(key, s, traj_last, n_valid, *, discount):
-    """Every row's fresh value goal (OGBench's mix, :func:`sample_goal_rows`) and its reward."""
-    rows = jnp.arange(s.shape[0], dtype=jnp.int32)
-    goal = sample_goal_rows(key, rows, traj_last, n_valid, VALUE_GOALS, discount)
-    success = goal == rows
-    return s[goal], success.astype(jnp.float32) - 1.0, success
+_fresh_goals = jax.jit(fresh_goals, static_argnames=("discount", "mix"))
 
 
 def make(config: LazyConfig | None, problem: Problem, *, mesh: Mesh | None = None) -> LazyAgent:
