@@ -53,8 +53,8 @@ class LazyConfig:
 class Neighbourhoods:
     """``idx [N, k]`` of every transition's neighbourhood, its growth ``level [N]`` and, with
     ``neighbours.fit_weights="epanechnikov"``, the local fits' ``weights [N, k]``; with
-    ``train.relabel_every``, past its first period, the rows' fresh goals ``g`` and their
-    rewards ``r`` and ``done`` (the neighbourhoods are those of the fresh goals)."""
+    ``train.relabel_every``, the goals ``g``, rewards ``r`` and ``done`` that the cycles train
+    on (the rows' own in the first period, fresh ones later; the neighbourhoods are theirs)."""
 
     idx: jax.Array
     level: jax.Array
