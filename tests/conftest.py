@@ -8,6 +8,8 @@ compiled again.  It changes no result (the cache key is the whole program).
 """
 
 import os
+import subprocess
+import sys
 import tempfile
 
 import jax
@@ -25,6 +27,35 @@ PUSH_BATCH = 16
 os.environ.setdefault("LAZYQ_COMPILE_CACHE",
                       os.path.join(tempfile.gettempdir(), f"lazyq-jax-test-cache-{os.getuid()}"))
 enable_compilation_cache()  # the CLI runs of the tests inherit the variable
+
+
+def _timeout_scale() -> float:
+    raw = os.environ.get("LAZYQ_TEST_TIMEOUT_SCALE", "1")
+    try:
+        scale = float(raw)
+    except ValueError:
+        scale = float("nan")
+    if not scale > 0 or scale == float("inf"):
+        raise pytest.UsageError(f"LAZYQ_TEST_TIMEOUT_SCALE must be a positive number (e.g. 3 when the "
+                                f"machine also runs other work), got {raw!r}")
+    return scale
+
+
+TIMEOUT_SCALE = _timeout_scale()
+
+
+def timeout(seconds: float) -> float:
+    """A subprocess's time limit in the suite: ``seconds`` (sized for 2 cores running the suite
+    alone, as CI does) times ``LAZYQ_TEST_TIMEOUT_SCALE`` (default 1; raise it when the machine
+    also runs other work: the limits catch hangs, not slowness)."""
+    return seconds * TIMEOUT_SCALE
+
+
+def cli(*args, seconds: float = 900) -> subprocess.CompletedProcess:
+    """``python -m lazyq_jax ARGS`` in a subprocess, its output captured, within
+    :func:`timeout` ``(seconds)``."""
+    return subprocess.run([sys.executable, "-m", "lazyq_jax", *args], capture_output=True,
+                          text=True, timeout=timeout(seconds), check=False)
 
 
 @pytest.fixture(scope="session")

@@ -1,13 +1,11 @@
 """The lazy policy and the push task's evaluation protocols; re-evaluating a trained run."""
 
-import subprocess
-import sys
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from conftest import cli
 from lazyq_jax.run import RunDirError, evaluate_run
 from lazyq_jax.tasks.base import CORRECT, NOT_PUSHED, WRONG, run_protocol, seed_acts
 from lazyq_jax.tasks.push import EvalConfig
@@ -17,8 +15,7 @@ from lazyq_jax.tasks.push.protocols import protocol_a, protocol_b, summarize_a, 
 def test_evaluation_refuses_a_directory_without_a_run(tmp_path):
     with pytest.raises(RunDirError, match="no run here"):
         evaluate_run(tmp_path)
-    out = subprocess.run([sys.executable, "-m", "lazyq_jax", "evaluate", "--run-dir", str(tmp_path)],
-                         capture_output=True, text=True, timeout=120)
+    out = cli("evaluate", "--run-dir", str(tmp_path), seconds=120)
     assert out.returncode == 2 and "no run here" in out.stderr and "Traceback" not in out.stderr
 
 

@@ -16,7 +16,6 @@ from lazyq_jax.agents.base import Problem
 from lazyq_jax.agents.reference import line_task
 from lazyq_jax.config import ConfigError, NeighbourConfig, TrainConfig, to_dict
 from lazyq_jax.local_model import epanechnikov_weights
-from lazyq_jax.neighbours import find_neighbours
 from lazyq_jax.neighbours.common import radius_tables
 from lazyq_jax.policy import FitKernel, LazyPolicy, lazy_policy, policy_index
 from lazyq_jax.run.rundir import RunDirError, open_method, open_run

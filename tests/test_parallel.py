@@ -17,7 +17,7 @@ from lazyq_jax.neighbours import find_neighbours
 from lazyq_jax.parallel import check_divisible, force_host_devices, make_mesh
 from lazyq_jax.run import run
 
-from conftest import PUSH
+from conftest import PUSH, timeout
 from two_process_search import search_inputs
 
 
@@ -30,7 +30,7 @@ def test_multidevice_results_match_one_device():
     env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=4"}
     script = Path(__file__).with_name("multidevice_check.py")
     proc = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True,
-                          timeout=900)
+                          timeout=timeout(900))
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "all multi-device checks passed" in proc.stdout
 
@@ -91,7 +91,7 @@ def test_two_processes_match_one_process(tmp_path):
                                    "JAX_COORDINATOR_ADDRESS": f"127.0.0.1:{port}"})
              for i in range(2)]
     try:
-        logs = [p.communicate(timeout=600)[0] for p in procs]
+        logs = [p.communicate(timeout=timeout(600))[0] for p in procs]
     finally:
         for p in procs:
             p.kill()
@@ -99,7 +99,7 @@ def test_two_processes_match_one_process(tmp_path):
         assert p.returncode == 0, f"process {i}:\n{log}"
     assert "2 cpu devices" in logs[0]
     single = subprocess.run(args + ["--run-dir", str(tmp_path / "single")], env=env,
-                            capture_output=True, text=True, timeout=600)
+                            capture_output=True, text=True, timeout=timeout(600))
     assert single.returncode == 0, single.stdout + single.stderr
 
     multi_data, _ = load_dataset(tmp_path / "multi" / "data" / "0" / "dataset.npz")
@@ -130,7 +130,7 @@ def test_two_processes_search_general_spaces_like_one(tmp_path):
                               stderr=subprocess.STDOUT, text=True, env={**env, "JAX_PROCESS_ID": str(i)})
              for i in range(2)]
     try:
-        logs = [p.communicate(timeout=300)[0] for p in procs]
+        logs = [p.communicate(timeout=timeout(300))[0] for p in procs]
     finally:
         for p in procs:
             p.kill()

@@ -5,8 +5,6 @@ evaluation against OGBench's env loop, and the whole task at smoke scale through
 Nothing downloads: ``ogbench.make_env_and_datasets(..., env_only=True)`` builds the env."""
 
 import json
-import subprocess
-import sys
 
 import jax
 import jax.numpy as jnp
@@ -14,6 +12,7 @@ import numpy as np
 import ogbench
 import pytest
 
+from conftest import cli
 from lazyq_jax import agents, tasks
 from lazyq_jax.config import ConfigError, override
 from lazyq_jax.data import DatasetError, load_dataset, save_dataset
@@ -219,10 +218,6 @@ def test_evaluation_matches_ogbench_env_loop(maze, gym_env, max_steps):
     outcomes = set(np.asarray(ro.outcome[0]).tolist())
     assert outcomes == ({CORRECT} if max_steps == 300 else {CORRECT, 0})
 
-
-def cli(*args, timeout=900):
-    return subprocess.run([sys.executable, "-m", "lazyq_jax", *args], capture_output=True,
-                          text=True, timeout=timeout, check=False)
 
 
 GCIVL = "gcivl:steps=4:width=16:batch_size=32"

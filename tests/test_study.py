@@ -10,15 +10,14 @@ the single program are never compared (training is chaotic).
 """
 
 import json
-import os
-import subprocess
-import sys
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import conftest
+from conftest import cli
 from lazyq_jax import agents, tasks
 from lazyq_jax.config import ConfigError, override
 from lazyq_jax.keys import purpose_key
@@ -38,10 +37,6 @@ TINY = ["collect.n_starts=150", "collect.n_goals=8", "train.cycles=2", "train.ep
         "eval.long_rollouts=2", "eval.long_max_steps=10"]
 CONFIG = override(tasks.preset("push", "smoke"), TINY)
 
-
-def cli(*args, timeout=900):
-    return subprocess.run([sys.executable, "-m", "lazyq_jax", *args], capture_output=True,
-                          text=True, timeout=timeout)
 
 
 def sets(assignments):
@@ -243,3 +238,14 @@ def test_summary_of_hand_made_results():
     assert np.isclose(out["summary"]["long_horizon_success_rate"]["mean"], 0.9)
     assert out["summary"]["long_horizon_success_rate"]["ci95"] == [0.9, 0.9]
     np.testing.assert_allclose([d["mean"] for d in out["per_direction"]], [0.8, 0.2, 0.9, 0.2])
+
+
+def test_the_suites_timeout_scale_is_validated(monkeypatch):
+    """``LAZYQ_TEST_TIMEOUT_SCALE`` multiplies the suite's subprocess limits; anything but a
+    positive finite number is refused with what to set."""
+    monkeypatch.setenv("LAZYQ_TEST_TIMEOUT_SCALE", "2.5")
+    assert conftest._timeout_scale() == 2.5
+    for bad in ("0", "-1", "nan", "inf", "slow"):
+        monkeypatch.setenv("LAZYQ_TEST_TIMEOUT_SCALE", bad)
+        with pytest.raises(pytest.UsageError, match="must be a positive number"):
+            conftest._timeout_scale()

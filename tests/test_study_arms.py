@@ -9,14 +9,13 @@ running all of them twice.
 
 import json
 import shutil
-import subprocess
-import sys
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from conftest import cli
 from lazyq_jax import agents, tasks
 from lazyq_jax.checkpoint import CheckpointError, load_checkpoint
 from lazyq_jax.config import override
@@ -34,10 +33,6 @@ LONG = ["neighbours.features=fingertip", "neighbours.radius_s=0.08", "neighbours
 JOINT = ["neighbours.features=state", "neighbours.radius_s=0.12", "neighbours.local_model=action"]
 EXTRA = {"arm": JOINT, "arm-long": LONG}
 
-
-def cli(*args, timeout=900):
-    return subprocess.run([sys.executable, "-m", "lazyq_jax", *args], capture_output=True,
-                          text=True, timeout=timeout)
 
 
 def sets(assignments):
