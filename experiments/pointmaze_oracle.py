@@ -49,11 +49,11 @@ import numpy as np
 from scipy.stats import spearmanr
 
 from lazyq_jax.keys import purpose_key
-from lazyq_jax.local_model import fit_local_linear, greedy_action, neighbour_offsets
+from lazyq_jax.local_model import fit_local_linear, fit_with_offsets, greedy_action, neighbour_offsets
 from lazyq_jax.neighbours import find_neighbours
 from lazyq_jax.run import load_run
 from lazyq_jax.stats import format_ci, t_interval
-from lazyq_jax.targets import bootstrap_values, evaluate_in_batches, lazy_target
+from lazyq_jax.targets import bootstrap_values, evaluate_in_batches, in_sample_target, lazy_target
 from lazyq_jax.tasks.pointmaze.maze import MAZE_UNIT, STEP_SCALE, get_maze
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -94,6 +94,17 @@ def model_offsets(model, s, g, ii, rows):
                              jnp.asarray(g[rows]) if with_goal else None)
 
 
+def run_target(train, a_nb, y_nb, offsets, action_length, action_set, clip=True):
+    """The run's own Eq. (8) target from the neighbours' values ``y_nb`` (its
+    ``train.target_max``: over the action set, the neighbours' actions, or the in-sample
+    expectile of the values moved to the row): ``(alpha, target, clip_active)``."""
+    alpha, beta, moved = fit_with_offsets(a_nb, y_nb, offsets=offsets)
+    if train.target_max == "expectile":
+        return (alpha, *in_sample_target(moved, train.target_expectile))
+    over = a_nb if train.target_max == "data" else None
+    return (alpha, *lazy_target(alpha, beta, y_nb, action_length, clip, action_set, over))
+
+
 def fixed_point(args, agent, data, seed, n, s, g, geo, gamma, config, loaded, tables, results):
     """T V against V* (and the trained V) at sampled rows; see the module docstring."""
     t = time.perf_counter()
@@ -115,12 +126,9 @@ def fixed_point(args, agent, data, seed, n, s, g, geo, gamma, config, loaded, ta
     for name in ("V* (walls)", "trained V"):
         y = tables[name]
         y_nb = jnp.asarray(y)[ii]
-        alpha, beta = fit_local_linear(a_nb, y_nb, offsets=offsets)
-        over = a_nb if config.train.target_max == "data" else None  # the run's own target
-        target, clipped = lazy_target(alpha, beta, y_nb, agent.problem.action_length, True,
-                                      agent.problem.action_set, over)
-        unclipped, _ = lazy_target(alpha, beta, y_nb, agent.problem.action_length, False,
-                                   agent.problem.action_set, over)
+        c, action_set = agent.problem.action_length, agent.problem.action_set
+        alpha, target, clipped = run_target(config.train, a_nb, y_nb, offsets, c, action_set)
+        _, unclipped, _ = run_target(config.train, a_nb, y_nb, offsets, c, action_set, clip=False)
         target, unclipped = np.asarray(target, np.float64), np.asarray(unclipped, np.float64)
         ref = v_star if name.startswith("V*") else v_rows_net
         entry = {}
@@ -267,9 +275,7 @@ def radius_probe(args, agent, data, seed, n, s, g, geo, gamma, config, tables, r
         out[key] = entry = {"level0": float((level == 0).mean()), "mean_level": float(level.mean())}
         for name, ref in (("V* (walls)", v_star), ("V_line (no walls)", v_line)):
             y_nb = jnp.asarray(tables[name])[ii]
-            alpha, beta = fit_local_linear(a_nb, y_nb, offsets=offsets)
-            over = a_nb if config.train.target_max == "data" else None
-            target, _ = lazy_target(alpha, beta, y_nb, c, True, action_set, over)
+            _, target, _ = run_target(config.train, a_nb, y_nb, offsets, c, action_set)
             err = np.asarray(target, np.float64) - ref
             parts = [("all", np.ones_like(wall)), ("wall pairs", wall)]
             parts += [(f"wall pairs, state {lo}-{hi} from a wall", wall & (clear >= lo) & (clear < hi))

@@ -124,7 +124,10 @@ class TrainConfig:
     ``resample_neighbours`` draws new k-subsets of each neighbourhood every cycle.
     ``target_max``: Eq. (7)'s maximum over the action ``"set"`` (the paper's), or over the
     neighbourhood's own actions, ``"data"`` (``alpha + max_j beta . a_j``: an in-sample
-    maximum that extrapolates less; ``docs/pointmaze.md``); the policy stays Eq. (9).
+    maximum that extrapolates less; ``docs/pointmaze.md``), or ``"expectile"``: the
+    ``target_expectile``-expectile of the neighbours' values moved to the row's state and goal
+    by the local model's offset terms (:func:`lazyq_jax.targets.in_sample_target`: in-sample,
+    as IQL's and GCIVL's expectile, never above the largest of them); the policy stays Eq. (9).
     ``value_init``: where V starts (the last layer's initial bias; 0, the paper's, by
     default).  ``r_min / (1 - gamma)`` is a pessimistic start: V rises from below (on the
     maze it still ends above V* at the pairs across walls: ``docs/pointmaze.md``).
@@ -147,17 +150,23 @@ class TrainConfig:
     resample_neighbours: bool = False
     target_batch_size: int = 65536
     target_max: str = "set"
+    target_expectile: float = 0.9  # OGBench's GCIVL/GCIQL expectile
     value_init: float = 0.0
     relabel_every: int = 0
 
     def __post_init__(self) -> None:
         _counts(self, "relabel_every", minimum=0)
-        _check(self.target_max in ("set", "data"),
-               f"TrainConfig.target_max must be 'set' (Eq. 7 over the action set) or 'data' (over "
-               f"the neighbourhood's actions), got {self.target_max!r}")
-        _check(not (self.double_dqn and self.target_max == "data"),
+        _check(self.target_max in ("set", "data", "expectile"),
+               f"TrainConfig.target_max must be 'set' (Eq. 7 over the action set), 'data' (over "
+               f"the neighbourhood's actions) or 'expectile' (an in-sample expectile of the "
+               f"neighbours' values), got {self.target_max!r}")
+        _check(not (self.double_dqn and self.target_max != "set"),
                "TrainConfig: double_dqn picks the action set's maximiser (Eq. 13); use it with "
                "target_max='set'")
+        _check(isinstance(self.target_expectile, (int, float)) and not isinstance(self.target_expectile, bool)
+               and 0.0 < self.target_expectile < 1.0,
+               f"TrainConfig.target_expectile must lie strictly between 0 and 1 (0.5: the mean, "
+               f"near 1: the maximum), got {self.target_expectile!r}")
         _check(0.0 <= self.gamma < 1.0, f"TrainConfig.gamma must lie in [0, 1), got {self.gamma!r}")
         _counts(self, "cycles", "epochs", "batch_size", "width", "target_batch_size")
         _check(_is_int(self.depth) and self.depth >= 2,

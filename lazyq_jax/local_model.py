@@ -87,9 +87,8 @@ def fit_local_linear(actions, values, weights=None, offsets=None):
         offsets = jnp.asarray(offsets, jnp.float32)
         if offsets.shape[:-1] != actions.shape[:-1]:
             raise ValueError(f"offsets [..., k, m] must match actions {actions.shape[:-1]}, got {offsets.shape}")
-        n_a = actions.shape[-1]
-        alpha, coef = fit_local_linear(jnp.concatenate([actions, offsets], -1), values, weights)
-        return alpha, coef[..., :n_a]
+        alpha, beta, _ = fit_with_offsets(actions, values, weights, offsets)
+        return alpha, beta
     w, sw, a_mean, centred = _centred(actions, weights)
     v_mean = (w * values).sum(-1) / sw
     wa = centred * w[..., None]
@@ -98,6 +97,54 @@ def fit_local_linear(actions, values, weights=None, offsets=None):
     beta = jnp.einsum("...ab,...b->...a", _regularised_inverse(cov), rhs)
     alpha = v_mean - jnp.einsum("...a,...a->...", beta, a_mean)
     return alpha, beta
+
+
+def fit_with_offsets(actions, values, weights=None, offsets=None):
+    """:func:`fit_local_linear`'s fit and each neighbour's value moved to the neighbourhood's
+    centre: ``(alpha [...], beta [..., n_a], moved [..., k])`` with ``moved_j = y_j - c .
+    offset_j`` (``c``: the fit's offset coefficients), i.e. ``alpha + beta . a_j`` plus the
+    neighbour's residual: what its action is worth from the centre's state and goal.
+    Without ``offsets``, ``moved = values``."""
+    actions = jnp.asarray(actions, jnp.float32)
+    values = jnp.asarray(values, jnp.float32)
+    if offsets is None:
+        alpha, beta = fit_local_linear(actions, values, weights)
+        return alpha, beta, values
+    offsets = jnp.asarray(offsets, jnp.float32)
+    if offsets.shape[:-1] != actions.shape[:-1]:
+        raise ValueError(f"offsets [..., k, m] must match actions {actions.shape[:-1]}, got {offsets.shape}")
+    n_a = actions.shape[-1]
+    alpha, coef = fit_local_linear(jnp.concatenate([actions, offsets], -1), values, weights)
+    moved = values - jnp.einsum("...km,...m->...k", offsets, coef[..., n_a:])
+    return alpha, coef[..., :n_a], moved
+
+
+def expectile(values, tau: float, weights=None):
+    """The ``tau``-expectile of ``values [..., k]`` over the last axis (with ``weights [..., k]``
+    >= 0, not all 0): the ``m`` with ``tau sum_j w_j (y_j - m)_+ = (1 - tau) sum_j w_j (m - y_j)_+``
+    (Newey & Powell 1987; IQL's and GCIVL's expectile, here over a neighbourhood).  ``tau =
+    0.5`` is the (weighted) mean, ``tau -> 1`` the maximum.  Exact, by sorting: between two
+    consecutive sorted values the equation is linear in ``m``.  Monotone in every value and
+    ``m(y + c) = m(y) + c``, so 1-Lipschitz in the max norm.  ``0 < tau < 1``."""
+    if not 0.0 < tau < 1.0:
+        raise ValueError(f"the expectile's tau must lie in (0, 1), got {tau!r}")
+    values = jnp.asarray(values, jnp.float32)
+    w = jnp.ones_like(values) if weights is None else jnp.broadcast_to(jnp.asarray(weights, jnp.float32),
+                                                                       values.shape)
+    order = jnp.argsort(values, axis=-1)
+    x = jnp.take_along_axis(values, order, -1)
+    w = jnp.take_along_axis(w, order, -1)
+    w_below = jnp.cumsum(w, -1)  # weight and weighted sum of x_1..x_i
+    s_below = jnp.cumsum(w * x, -1)
+    w_all, s_all = w_below[..., -1:], s_below[..., -1:]
+    # The equation's left minus right side at m = x_i: decreasing in i, >= 0 where the root is >= x_i.
+    f = tau * (s_all - s_below - (w_all - w_below) * x) - (1 - tau) * (w_below * x - s_below)
+    i = jnp.clip(jnp.sum(f >= 0, -1, keepdims=True), 1, values.shape[-1]) - 1  # the root in [x_i, x_i+1]
+    wb, sb = jnp.take_along_axis(w_below, i, -1), jnp.take_along_axis(s_below, i, -1)
+    m = ((1 - tau) * sb + tau * (s_all - sb)) / jnp.maximum((1 - tau) * wb + tau * (w_all - wb), 1e-30)
+    lo = jnp.take_along_axis(x, i, -1)
+    hi = jnp.take_along_axis(x, jnp.minimum(i + 1, values.shape[-1] - 1), -1)
+    return jnp.clip(m, lo, hi)[..., 0]
 
 
 def goal_offsets(g_nb, g0, angle: bool):

@@ -15,8 +15,8 @@ import jax.numpy as jnp
 from flax import struct
 from jax.sharding import Mesh
 
-from lazyq_jax.local_model import (apply_projection, fit_local_linear, greedy_action, max_linear,
-                                   neighbour_offsets, safe_norm)
+from lazyq_jax.local_model import (apply_projection, expectile, fit_local_linear, fit_with_offsets,
+                                   greedy_action, max_linear, neighbour_offsets, safe_norm)
 from lazyq_jax.parallel import constrain, mesh_size, replicated, sharded
 from lazyq_jax.types import Transitions
 
@@ -37,6 +37,22 @@ def lazy_target(alpha, beta, values, action_length, clip=True, action_set="ball"
     else:
         linear = alpha + jnp.max(jnp.einsum("...ka,...a->...k", actions, beta), axis=-1)
     return _clip(linear, values, clip)
+
+
+def in_sample_target(moved, tau: float, weights=None):
+    """``target_max="expectile"``: the ``tau``-expectile of the neighbours' values moved to the
+    centre (``moved [..., k]``, :func:`local_fits` with ``in_sample=True``), weighted by the
+    fit's ``weights [..., k]`` if any, instead of Eq. (7)'s maximum of the fit over the
+    action set.  An in-sample soft maximum over the neighbourhood's own actions with their
+    residuals, as IQL's and GCIVL's expectile over the data's next states (Kostrikov et al.
+    2022; Park et al. 2024); it never exceeds the largest moved value, so Eq. (8)'s clip has
+    nothing to do.  Without offsets (``local_model="action"``) it is 1-Lipschitz in the
+    values: with ``gamma < 1`` a contraction.
+
+    Returns ``(target [...], clip_active [...] bool, all false)``.
+    """
+    target = expectile(moved, tau, weights)
+    return target, jnp.zeros(target.shape, bool)
 
 
 def double_dqn_target(alpha, beta, beta_online, values, action_length, clip=True, action_set="ball"):
@@ -153,9 +169,11 @@ def bootstrap_table(v: ValueFn, data: Transitions, gamma, batch_size=65536,
 
 def local_fits(v: ValueFn, data: Transitions, neighbours_idx, *, gamma, projection=None,
                batch_size=65536, mesh: Mesh | None = None, state_offsets: bool = False,
-               goal_offsets: bool = False, weights=None):
+               goal_offsets: bool = False, weights=None, in_sample: bool = False):
     """``(alpha [N], beta [N, n_a], y_nb [N, k])``: Eq. (5)-(6) for every transition's
-    neighbourhood with ``y = r + gamma (1 - done) v(s', g)``; ``y_nb = y[neighbours_idx]``.
+    neighbourhood with ``y = r + gamma (1 - done) v(s', g)``; ``y_nb = y[neighbours_idx]``
+    (``in_sample=True``: instead each neighbour's value moved to the row's state and goal by
+    the fit's offset coefficients, :func:`lazyq_jax.local_model.fit_with_offsets`).
     ``state_offsets``: fit ``alpha + beta . a + gamma' . (s_j - s_i)`` instead
     (:func:`lazyq_jax.local_model.fit_local_linear`'s ``offsets``); ``goal_offsets`` (with
     ``state_offsets``): also ``g_j - g_i`` (:func:`lazyq_jax.local_model.neighbour_offsets`).
@@ -183,8 +201,9 @@ def local_fits(v: ValueFn, data: Transitions, neighbours_idx, *, gamma, projecti
         if state_offsets:
             offsets = neighbour_offsets(data.s[nb], data.s[rows], None if g is None else g[nb],
                                         None if g is None else g[rows])
-            alpha, beta = fit_local_linear(data.a[nb], y_nb, w, offsets=offsets)
-        elif projection is None:
+            alpha, beta, moved = fit_with_offsets(data.a[nb], y_nb, w, offsets)
+            return alpha, beta, moved if in_sample else y_nb
+        if projection is None:
             alpha, beta = fit_local_linear(data.a[nb], y_nb, w)
         else:
             alpha, beta = apply_projection(projection[rows], y_nb)

@@ -42,7 +42,7 @@ from lazyq_jax.config import TrainConfig
 from lazyq_jax.local_model import safe_norm
 from lazyq_jax.networks import ValueNetwork, goal_kind
 from lazyq_jax.parallel import AXIS, check_divisible, mesh_size
-from lazyq_jax.targets import double_dqn_target, lazy_target, local_fits
+from lazyq_jax.targets import double_dqn_target, in_sample_target, lazy_target, local_fits
 from lazyq_jax.types import Transitions
 
 
@@ -197,7 +197,8 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
     def fits(state: TrainState, data: Transitions, idx: jax.Array, weights):
         return local_fits(value_fn(state), data, idx, gamma=config.gamma,
                           batch_size=config.target_batch_size, mesh=mesh, state_offsets=state_offsets,
-                          goal_offsets=goal_offsets, weights=weights)
+                          goal_offsets=goal_offsets, weights=weights,
+                          in_sample=config.target_max == "expectile")
 
     def loss_fn(params, batch_stats, s, g, y):
         v, updates = train_network.apply({"params": params, "batch_stats": batch_stats}, s, g,
@@ -258,8 +259,11 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
         key, k_epochs = jax.random.split(state.key)
         # The target network: the parameters frozen at the start of the cycle (Eq. 11-12).
         alpha, beta, y_nb = fits(state, data, idx, weights)
-        actions = data.a[idx] if config.target_max == "data" else None
-        dqn = lazy_target(alpha, beta, y_nb, action_length, config.clip, action_set, actions)
+        if config.target_max == "expectile":  # y_nb: the neighbours' values moved to the row
+            dqn = in_sample_target(y_nb, config.target_expectile, weights)
+        else:
+            actions = data.a[idx] if config.target_max == "data" else None
+            dqn = lazy_target(alpha, beta, y_nb, action_length, config.clip, action_set, actions)
 
         def one_epoch(state, xs):
             e, k = xs

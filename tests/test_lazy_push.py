@@ -15,7 +15,7 @@ from lazyq_jax.checkpoint import (CheckpointDamaged, CheckpointError, all_steps,
                                   load_checkpoint, save_checkpoint)
 from lazyq_jax.config import override
 from lazyq_jax.run import evaluate_run, load_run
-from lazyq_jax.targets import dataset_targets, lazy_target, local_fits
+from lazyq_jax.targets import dataset_targets, in_sample_target, lazy_target, local_fits
 from lazyq_jax.train import make_train
 
 
@@ -89,6 +89,32 @@ def test_target_max_over_the_data_in_a_cycle(trained):
     n = data.size  # float32 means of n rows summed in another order
     np.testing.assert_allclose(float(metrics["target_mean"]), float(jnp.mean(expect)),
                                rtol=max(n * 2.0 ** -24, 1e-6))
+    assert float(jnp.mean(expect)) < float(jnp.mean(ball))
+
+
+@pytest.mark.parametrize("model", ["action", "action+state"])
+def test_target_max_expectile_in_a_cycle(trained, model):
+    """``train.target_max=expectile``: the cycle's targets are the 0.9-expectile of the
+    neighbours' values moved to the row (the values themselves with the paper's action-only
+    model, moved by the state offsets' coefficients otherwise), computed by hand from the
+    frozen network; Eq. (8)'s clip is never active; and they lie below Eq. (7)'s maximum."""
+    _, _, data, idx = trained
+    cfg = override(PUSH, ["train.target_max=expectile", "train.epochs=1"]).train
+    offsets = model != "action"
+    trainer = make_train(cfg, 0.1, state_scale=0.6, state_offsets=offsets)
+    state = trainer.init(jax.random.PRNGKey(0), data)
+    v = trainer.value_fn(state)
+    alpha, beta, moved = local_fits(v, data, idx, gamma=cfg.gamma, state_offsets=offsets, in_sample=True)
+    expect, _ = in_sample_target(moved, 0.9)
+    if not offsets:
+        _, _, y_nb = local_fits(v, data, idx, gamma=cfg.gamma)
+        np.testing.assert_array_equal(moved, y_nb)
+    ball, _ = lazy_target(alpha, beta, moved, 0.1, cfg.clip, "ball")
+    _, metrics = jax.jit(trainer.run_cycle)(state, data, idx)
+    n = data.size  # float32 means of n rows summed in another order
+    np.testing.assert_allclose(float(metrics["target_mean"]), float(jnp.mean(expect)),
+                               rtol=max(n * 2.0 ** -24, 1e-6))
+    assert float(metrics["clip_fraction"]) == 0.0
     assert float(jnp.mean(expect)) < float(jnp.mean(ball))
 
 

@@ -5,11 +5,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from scipy.optimize import brentq
 
 from lazyq_jax.local_model import (
     RIDGE,
     apply_projection,
+    expectile,
     fit_local_linear,
+    fit_with_offsets,
     greedy_action,
     max_linear,
     neighbour_offsets,
@@ -245,3 +248,82 @@ def test_goal_offsets_are_the_wrapped_differences(goal):
     np.testing.assert_allclose(b, beta, atol=5e-3)
     if goal == "vector":
         assert np.abs(b_plain - beta).max() > 1.0
+
+
+def test_fit_with_offsets_moves_each_value_to_the_centre():
+    """``fit_with_offsets``: the same ``alpha, beta`` as ``fit_local_linear(offsets=...)``, and
+    ``moved_j = y_j - c . offset_j`` with ``c`` the offset part of the joint least squares
+    (float64 lstsq), i.e. ``alpha + beta . a_j`` plus the neighbour's residual.  Without
+    offsets ``moved`` is the values themselves."""
+    rng = np.random.default_rng(5)
+    a = rng.uniform(-1, 1, (40, 15, 2)).astype(np.float32)
+    d = rng.normal(size=(40, 15, 3)).astype(np.float32)
+    v = (2.0 + a @ np.array([1.0, -0.5]) + 3.0 * d[..., 0] + 0.3 * rng.normal(size=(40, 15))).astype(np.float32)
+    alpha, beta, moved = fit_with_offsets(a, v, offsets=d)
+    alpha_plain, beta_plain = fit_local_linear(a, v, offsets=d)
+    np.testing.assert_array_equal(alpha, alpha_plain)
+    np.testing.assert_array_equal(beta, beta_plain)
+    alpha_ref, coef_ref = lstsq(np.concatenate([a, d], -1), v)
+    moved_ref = v - np.einsum("nkm,nm->nk", d.astype(np.float64), coef_ref[:, 2:])
+    scale = np.abs(v).max()
+    np.testing.assert_allclose(moved, moved_ref, atol=1e-4 * scale)
+    resid = v - alpha_ref[:, None] - np.einsum("nka,na->nk", a.astype(np.float64), coef_ref[:, :2]) \
+        - np.einsum("nkm,nm->nk", d.astype(np.float64), coef_ref[:, 2:])
+    np.testing.assert_allclose(moved, alpha_ref[:, None] + np.einsum("nka,na->nk", a, coef_ref[:, :2]) + resid,
+                               atol=1e-4 * scale)
+    _, _, same = fit_with_offsets(a, v)
+    np.testing.assert_array_equal(same, v)
+    with pytest.raises(ValueError, match="offsets"):
+        fit_with_offsets(a, v, offsets=d[:, :5])
+
+
+def _expectile_root(y, w, tau):
+    """float64 root of ``tau sum w (y - m)_+ = (1 - tau) sum w (m - y)_+`` by Brent's method."""
+    if y.min() == y.max():
+        return float(y[0])
+    f = lambda m: tau * np.sum(w * np.maximum(y - m, 0)) - (1 - tau) * np.sum(w * np.maximum(m - y, 0))
+    return brentq(f, y.min(), y.max(), xtol=1e-14, rtol=1e-15)
+
+
+@pytest.mark.parametrize("tau", [0.1, 0.5, 0.9, 0.99])
+def test_expectile_against_root_finding(tau):
+    """``expectile`` over the last axis against a float64 root of its defining equation, with
+    and without weights, for neighbourhoods of 1-25 values at scales 1e-3 to 1e2 and with
+    ties; 0.5 is the (weighted) mean.  float32 sums of <= 25 values: 1e-5 of the scale."""
+    rng = np.random.default_rng(int(tau * 100))
+    for _ in range(60):
+        k = int(rng.integers(1, 26))
+        y = rng.normal(size=k) * rng.choice([1e-3, 1.0, 100.0])
+        if rng.random() < 0.3:
+            y = np.round(y)  # ties
+        w = rng.uniform(0.1, 1.0, k)
+        y32, w32 = y.astype(np.float32), w.astype(np.float32)
+        tol = 1e-5 * max(np.abs(y).max(), 1e-3)
+        got = float(expectile(jnp.asarray(y32), tau, jnp.asarray(w32)))
+        assert abs(got - _expectile_root(y32.astype(np.float64), w32.astype(np.float64), tau)) <= tol
+        got = float(expectile(jnp.asarray(y32), tau))
+        assert abs(got - _expectile_root(y32.astype(np.float64), np.ones(k), tau)) <= tol
+    y = rng.normal(size=(7, 9)).astype(np.float32)
+    w = rng.uniform(0.1, 1.0, (7, 9)).astype(np.float32)
+    np.testing.assert_allclose(expectile(y, 0.5, w), (w * y).sum(1) / w.sum(1), atol=1e-6)
+
+
+def test_expectile_is_monotone_and_shifts_with_the_values():
+    """The properties that make an expectile target 1-Lipschitz in the max norm: adding c to
+    every value adds c; raising one value never lowers it; so ``|m(y + e) - m(y)| <=
+    max |e|``.  And ``tau -> 1`` tends to the maximum, ``tau -> 0`` to the minimum."""
+    rng = np.random.default_rng(11)
+    y = rng.normal(size=(200, 20)).astype(np.float32)
+    e = rng.uniform(-0.5, 0.5, (200, 20)).astype(np.float32)
+    m = np.asarray(expectile(y, 0.9))
+    np.testing.assert_allclose(expectile(y + 3.0, 0.9), m + 3.0, atol=1e-5)
+    up = y.copy()
+    up[:, 0] += np.abs(e[:, 0])
+    assert np.all(np.asarray(expectile(up, 0.9)) >= m - 1e-6)
+    assert np.all(np.abs(np.asarray(expectile(y + e, 0.9)) - m) <= np.abs(e).max(1) + 1e-5)
+    assert np.all(np.asarray(expectile(y, 0.999)) <= y.max(1) + 1e-6)
+    np.testing.assert_allclose(expectile(y, 0.999999), y.max(1), atol=2e-3)
+    np.testing.assert_allclose(expectile(y, 1e-6), y.min(1), atol=2e-3)
+    for tau in (0.0, 1.0, 1.5):
+        with pytest.raises(ValueError, match="tau"):
+            expectile(y, tau)

@@ -7,11 +7,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from scipy.optimize import brentq
 
 from lazyq_jax.config import ConfigError, TrainConfig
 from lazyq_jax.local_model import RIDGE, precompute_projection
-from lazyq_jax.targets import (bootstrap_values, dataset_targets, evaluate_in_batches, lazy_target,
-                               local_fits)
+from lazyq_jax.targets import (bootstrap_values, dataset_targets, evaluate_in_batches, in_sample_target,
+                               lazy_target, local_fits)
 from lazyq_jax.types import Transitions
 
 
@@ -177,6 +178,63 @@ def test_target_max_is_validated():
         TrainConfig(target_max="corner")
     with pytest.raises(ConfigError, match="double_dqn"):
         TrainConfig(target_max="data", double_dqn=True)
+    with pytest.raises(ConfigError, match="double_dqn"):
+        TrainConfig(target_max="expectile", double_dqn=True)
+    for tau in (0.0, 1.0, -0.2, True):
+        with pytest.raises(ConfigError, match="target_expectile must lie strictly between 0 and 1"):
+            TrainConfig(target_max="expectile", target_expectile=tau)
+
+
+@pytest.mark.parametrize("offsets", [False, True])
+def test_in_sample_target_against_numpy(offsets):
+    """``local_fits(in_sample=True)`` gives each neighbour's value moved to the row (``y_j -
+    c . (s_j - s_i, g_j - g_i)`` with ``c`` from float64 lstsq on ``(1, a_j, offsets)``; the
+    values themselves without offsets), and ``in_sample_target`` their expectile (a float64
+    root of its equation); never above the largest moved value, and the clip never active."""
+    rng = np.random.default_rng(8)
+    n, k, tau = 40, 12, 0.9
+    data, _ = _fit_data(n, k, rng)
+    data = data.replace(g=jnp.asarray(rng.normal(size=(n, 2)), jnp.float32))
+    # distinct neighbours: 12 rows for the 8 coefficients, a well-posed least squares
+    idx = jnp.asarray(np.stack([rng.choice(n, k, replace=False) for _ in range(n)]), jnp.int32)
+    v = lambda s_, g_: jnp.sin(s_[:, 0]) + 0.5 * s_[:, 1] + jnp.sum(g_, -1)
+    kw = dict(state_offsets=True, goal_offsets=True) if offsets else {}
+    _, _, moved = local_fits(v, data, idx, gamma=0.9, in_sample=True, **kw)
+    target, active = in_sample_target(moved, tau)
+    y = np.asarray(data.r, np.float64) + 0.9 * np.asarray(v(data.s_next, data.g), np.float64)
+    idx_np, s, g, a = (np.asarray(x, np.float64) for x in (idx, data.s, data.g, data.a))
+    idx_np = idx_np.astype(int)
+    for i in range(n):
+        yi = y[idx_np[i]]
+        if offsets:
+            off = np.concatenate([s[idx_np[i]] - s[i], g[idx_np[i]] - g[i]], 1)
+            coef = np.linalg.lstsq(np.concatenate([np.ones((k, 1)), a[idx_np[i]], off], 1), yi, rcond=None)[0]
+            yi = yi - off @ coef[3:]
+        scale = np.abs(yi).max() + 1.0
+        np.testing.assert_allclose(moved[i], yi, atol=2e-3 * scale)
+        f = lambda m: tau * np.maximum(yi - m, 0).sum() - (1 - tau) * np.maximum(m - yi, 0).sum()
+        from_ref = brentq(f, yi.min(), yi.max())
+        np.testing.assert_allclose(target[i], from_ref, atol=2e-3 * scale)
+    assert np.all(np.asarray(target) <= np.asarray(moved).max(1) + 1e-6)
+    assert not np.any(np.asarray(active))
+
+
+def test_in_sample_target_without_offsets_is_a_contraction():
+    """Without offsets the expectile target is 1-Lipschitz in the neighbours' values, so the
+    backup ``V -> expectile_j(r_j + gamma V(s'_j))`` shrinks any change of V by gamma in the
+    max norm (Eq. 7's maximum of an extrapolating fit does not: ``sum_j |w_j| > 1``)."""
+    rng = np.random.default_rng(9)
+    n, k, gamma = 300, 10, 0.9
+    r = rng.normal(size=n).astype(np.float32)
+    nxt = rng.integers(0, n, n)
+    idx = rng.integers(0, n, (n, k))
+    v1 = rng.normal(size=n).astype(np.float32)
+    v2 = v1 + rng.uniform(-1, 1, n).astype(np.float32)
+
+    def backup(v):
+        return np.asarray(in_sample_target((r + gamma * v[nxt])[idx], 0.9)[0])
+
+    assert np.abs(backup(v1) - backup(v2)).max() <= gamma * np.abs(v1 - v2).max() + 1e-5
 
 
 def _fit_data(n, k, rng):
