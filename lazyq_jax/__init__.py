@@ -24,8 +24,8 @@ from lazyq_jax.checkpoint import (CheckpointDamaged, CheckpointError, checkpoint
 from lazyq_jax.config import (Config, ConfigError, NeighbourConfig, OnlineConfig, ParallelConfig,
                               TrainConfig, override)
 from lazyq_jax.data import DatasetError, load_dataset, save_dataset
-from lazyq_jax.local_model import (apply_projection, fit_local_linear, greedy_action, max_linear,
-                                   precompute_projection, safe_norm)
+from lazyq_jax.local_model import (apply_projection, expectile, fit_local_linear, fit_with_offsets,
+                                   greedy_action, max_linear, precompute_projection, safe_norm)
 from lazyq_jax.neighbours import (GridIndex, Neighbours, build_index, check_found, find_neighbours,
                                   query_neighbours, search_all)
 from lazyq_jax.networks import ValueNetwork
@@ -34,7 +34,8 @@ from lazyq_jax.policy import LazyPolicy, lazy_policy, make_lazy_policy
 from lazyq_jax.run import RunDirError, evaluate_run, load_policy, load_run, run
 from lazyq_jax.stats import t_interval
 from lazyq_jax.targets import (TargetDiagnostics, bootstrap_table, bootstrap_values, dataset_targets,
-                               double_dqn_target, evaluate_in_batches, lazy_target, local_fits)
+                               double_dqn_target, evaluate_in_batches, in_sample_target, lazy_target,
+                               local_fits)
 from lazyq_jax.tasks import preset
 from lazyq_jax.tasks.arm import ArmConfig, ArmEnv, collect_arm
 from lazyq_jax.tasks.push import (FORGIVING_PUSH, CollectConfig, EvalConfig, PushConfig, PushEnv,
@@ -54,7 +55,8 @@ __all__ = [
     "bootstrap_values", "build_index", "check_found", "checkpoint_writer", "collect", "collect_arm",
     "dataset_summary",
     "dataset_targets", "double_dqn_target", "evaluate_in_batches", "evaluate_run",
-    "find_neighbours", "fit_local_linear", "greedy_action", "lazy_policy", "lazy_target",
+    "expectile", "find_neighbours", "fit_local_linear", "fit_with_offsets", "greedy_action",
+    "in_sample_target", "lazy_policy", "lazy_target",
     "load_checkpoint", "load_dataset", "load_latest_intact", "load_policy", "load_run", "local_fits",
     "make_lazy_policy", "make_mesh", "make_train", "max_linear", "override", "pad_transitions",
     "precompute_projection", "preset", "push_reward", "query_neighbours", "run", "safe_norm",

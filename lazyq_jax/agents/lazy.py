@@ -8,8 +8,9 @@ action value model Q(s, a, g) ~ alpha + beta.a (Eq. 4), behind the agent interfa
   a fresh k-subset every cycle; ``train.relabel_every``: every row a fresh goal, drawn as
   OGBench's value goals from its trajectory, and new neighbourhoods, every that many cycles).
 * ``run_block``: one cycle of fitted value iteration (:func:`lazyq_jax.train.make_train`):
-  targets of Eq. (11) (or Eq. 13 with ``train.double_dqn``) from the network frozen at
-  the start of the cycle, then ``train.epochs`` epochs of Adam on Eq. (10).
+  targets of Eq. (11) (or Eq. 13 with ``train.double_dqn``; ``train.target_max`` moves
+  Eq. 7's maximum to the neighbours' actions or an in-sample expectile) from the network
+  frozen at the start of the cycle, then ``train.epochs`` epochs of Adam on Eq. (10).
 * ``act``: Eq. (9), the greedy action of the local fit over the dataset
   (:func:`lazyq_jax.policy.lazy_policy`); where the local model prefers no action (no
   neighbourhood within ``neighbours.max_level`` growths, or ``beta = 0``) the zero action,
