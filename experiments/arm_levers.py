@@ -82,6 +82,9 @@ VARIANTS = {
     # 4x the moves, a quarter of the goals per move (25, not §V-A-3's 100): the rows (and the
     # training's cost) of 1x, but a neighbourhood of k rows holds more distinct moves
     "fingertip_offsets_x4_g25": FINGERTIP_OFFSETS + ["collect.n_starts=20000", "collect.n_goals=25"],
+    # the same with the in-sample expectile target (train.target_max=expectile, tau 0.9)
+    "fingertip_offsets_x4_g25_expectile": FINGERTIP_OFFSETS + ["collect.n_starts=20000", "collect.n_goals=25",
+                                                               "train.target_max=expectile"],
     "fingertip_offsets_box0.6_disk0.3_x4_g25_random": FINGERTIP_OFFSETS + RANDOM + [
         "collect.arm.start_range=0.6", "collect.disk_range=0.3", "collect.n_starts=20000",
         "collect.n_goals=25"],
