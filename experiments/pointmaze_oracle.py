@@ -49,7 +49,12 @@ import numpy as np
 from scipy.stats import spearmanr
 
 from lazyq_jax.keys import purpose_key
-from lazyq_jax.local_model import fit_local_linear, fit_with_offsets, greedy_action, neighbour_offsets
+from lazyq_jax.local_model import (
+    fit_local_linear,
+    fit_with_offsets,
+    greedy_action,
+    neighbour_offsets,
+)
 from lazyq_jax.neighbours import find_neighbours
 from lazyq_jax.run import load_run
 from lazyq_jax.stats import format_ci, t_interval

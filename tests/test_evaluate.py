@@ -4,8 +4,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from conftest import cli
+
 from lazyq_jax.run import RunDirError, evaluate_run
 from lazyq_jax.tasks.base import CORRECT, NOT_PUSHED, WRONG, run_protocol, seed_acts
 from lazyq_jax.tasks.push import EvalConfig

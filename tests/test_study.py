@@ -11,13 +11,13 @@ the single program are never compared (training is chaotic).
 
 import json
 
+import conftest
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
-import conftest
 from conftest import cli
+
 from lazyq_jax import agents, tasks
 from lazyq_jax.config import ConfigError, override
 from lazyq_jax.keys import purpose_key

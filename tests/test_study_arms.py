@@ -14,8 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from conftest import cli
+
 from lazyq_jax import agents, tasks
 from lazyq_jax.checkpoint import CheckpointError, load_checkpoint
 from lazyq_jax.config import override

@@ -198,7 +198,7 @@ def test_in_sample_target_against_numpy(offsets):
     # distinct neighbours: 12 rows for the 8 coefficients, a well-posed least squares
     idx = jnp.asarray(np.stack([rng.choice(n, k, replace=False) for _ in range(n)]), jnp.int32)
     v = lambda s_, g_: jnp.sin(s_[:, 0]) + 0.5 * s_[:, 1] + jnp.sum(g_, -1)
-    kw = dict(state_offsets=True, goal_offsets=True) if offsets else {}
+    kw = {"state_offsets": True, "goal_offsets": True} if offsets else {}
     _, _, moved = local_fits(v, data, idx, gamma=0.9, in_sample=True, **kw)
     target, active = in_sample_target(moved, tau)
     y = np.asarray(data.r, np.float64) + 0.9 * np.asarray(v(data.s_next, data.g), np.float64)
@@ -212,7 +212,7 @@ def test_in_sample_target_against_numpy(offsets):
             yi = yi - off @ coef[3:]
         scale = np.abs(yi).max() + 1.0
         np.testing.assert_allclose(moved[i], yi, atol=2e-3 * scale)
-        f = lambda m: tau * np.maximum(yi - m, 0).sum() - (1 - tau) * np.maximum(m - yi, 0).sum()
+        f = lambda m, yi=yi: tau * np.maximum(yi - m, 0).sum() - (1 - tau) * np.maximum(m - yi, 0).sum()
         from_ref = brentq(f, yi.min(), yi.max())
         np.testing.assert_allclose(target[i], from_ref, atol=2e-3 * scale)
     assert np.all(np.asarray(target) <= np.asarray(moved).max(1) + 1e-6)
