@@ -84,11 +84,7 @@ def fit_local_linear(actions, values, weights=None, offsets=None):
     if actions.ndim < 2 or values.shape != actions.shape[:-1]:
         raise ValueError(f"need actions [..., k, n_a] and values [..., k]; got {actions.shape}, {values.shape}")
     if offsets is not None:
-        offsets = jnp.asarray(offsets, jnp.float32)
-        if offsets.shape[:-1] != actions.shape[:-1]:
-            raise ValueError(f"offsets [..., k, m] must match actions {actions.shape[:-1]}, got {offsets.shape}")
-        alpha, beta, _ = fit_with_offsets(actions, values, weights, offsets)
-        return alpha, beta
+        return fit_with_offsets(actions, values, weights, offsets)[:2]
     w, sw, a_mean, centred = _centred(actions, weights)
     v_mean = (w * values).sum(-1) / sw
     wa = centred * w[..., None]
