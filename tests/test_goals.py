@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from lazyq_jax import agents
-from lazyq_jax.agents import Problem
+from lazyq_jax.agents import Problem, lazy
 from lazyq_jax.agents.goals import (
     ACTOR_GOALS,
     VALUE_GOALS,
@@ -16,7 +16,6 @@ from lazyq_jax.agents.goals import (
     sample_goal_rows,
     uses_trajectories,
 )
-from lazyq_jax.agents import lazy
 from lazyq_jax.config import ConfigError, NeighbourConfig, TrainConfig
 from lazyq_jax.types import Transitions
 
@@ -96,7 +95,7 @@ def test_trajectory_goals_need_trajectories_and_state_goals():
         agents.GCIVLConfig(goals="future")
 
 
-@pytest.mark.parametrize("name", ["gcivl", "gciql", "gcbc"])
+@pytest.mark.parametrize("name", ["gcivl", "gciql", "gcbc", "qrl"])
 def test_agents_train_on_trajectory_goals(name):
     """A block on trajectory data runs under jit (the fresh goals inside the step)."""
     data, _ = trajectories()

@@ -11,8 +11,8 @@ import jax.numpy as jnp
 import numpy as np
 import ogbench
 import pytest
-
 from conftest import cli
+
 from lazyq_jax import agents, tasks
 from lazyq_jax.config import ConfigError, override
 from lazyq_jax.data import DatasetError, load_dataset, save_dataset
@@ -22,8 +22,16 @@ from lazyq_jax.run.rundir import write_json
 from lazyq_jax.run.runner import eval_stamp, stored_evaluation
 from lazyq_jax.run.sources import dataset_meta, seed_dataset
 from lazyq_jax.tasks.base import CORRECT, run_protocol, seed_acts
-from lazyq_jax.tasks.pointmaze import (get_maze, load_npz, navigate, oracle_action, relabel,
-                                       save_npz, task_protocol, trajectory_transitions)
+from lazyq_jax.tasks.pointmaze import (
+    get_maze,
+    load_npz,
+    navigate,
+    oracle_action,
+    relabel,
+    save_npz,
+    task_protocol,
+    trajectory_transitions,
+)
 from lazyq_jax.tasks.pointmaze.config import PointMazeEvalConfig
 
 
@@ -221,34 +229,37 @@ def test_evaluation_matches_ogbench_env_loop(maze, gym_env, max_steps):
 
 
 GCIVL = "gcivl:steps=4:width=16:batch_size=32"
+QRL = "qrl:steps=4:width=16:batch_size=32:latent_dim=16"
 TINY = ["collect.episodes=12", "collect.episode_steps=61", "eval.episodes_per_task=2",
         "eval.max_steps=20", "train.cycles=2", "neighbours.k=8"]
 
 
 def test_the_task_through_the_cli(tmp_path):
     run_dir = tmp_path / "pm"
-    # lazy Q, the closest published method (GCIVL, tiny) and the references; GCIQL and GCBC
-    # share GCIVL's path through the runner (tests/test_gc_agents.py trains them)
+    # lazy Q, the closest published method (GCIVL, tiny), QRL (its own value for the figure) and
+    # the references; GCIQL and GCBC share GCIVL's path through the runner
+    # (tests/test_gc_agents.py trains them)
     args = ["study", "--task", "pointmaze", "--preset", "smoke", "--seeds", "2", "--methods",
-            f"lazy,{GCIVL},random,scripted", "--run-dir", str(run_dir), "--no-progress"]
+            f"lazy,{GCIVL},{QRL},random,scripted", "--run-dir", str(run_dir), "--no-progress"]
     for a in TINY:
         args += ["--set", a]
     out = cli(*args)
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
     results = json.loads((run_dir / "results.json").read_text())
-    assert results["task"] == "pointmaze" and len(results["methods"]) == 4
+    assert results["task"] == "pointmaze" and len(results["methods"]) == 5
     for m in results["methods"].values():
         assert len(m["per_seed"]) == 2
         assert 0.0 <= m["per_seed"][0]["success_rate"] <= 1.0
     assert (run_dir / "figures" / "lazy" / "maze_rollouts.png").exists()
     assert (run_dir / "figures" / "lazy" / "maze_value.png").exists()
+    assert any(run_dir.glob("figures/qrl*/maze_value.png"))
     # reload: evaluate lazy Q again from its checkpoints (the same rows; the others kept), and
     # hand user code a policy
     out = cli("evaluate", "--run-dir", str(run_dir), "--methods", "lazy", "--no-figures", "--no-progress")
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
     rows = lambda r: {name: (m["per_seed"], m["summary"]) for name, m in r["methods"].items()}
     assert rows(json.loads((run_dir / "results.json").read_text())) == rows(results)
-    for method in ("lazy", GCIVL):
+    for method in ("lazy", GCIVL, QRL):
         act = load_policy(run_dir, method)
         a = act(jax.random.PRNGKey(0), jnp.zeros((3, 2)), jnp.full((3, 2), 4.0))
         assert a.shape == (3, 2) and bool(jnp.all(jnp.abs(a) <= 1.0 + 1e-6))

@@ -14,9 +14,10 @@ by the runner from the task); ``random`` the chance level.
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
-from lazyq_jax.agents import bc, dqn, gcbc, gciql, gcivl, iql, lazy, naf, reference, td3bc
+from lazyq_jax.agents import bc, dqn, gcbc, gciql, gcivl, iql, lazy, naf, qrl, reference, td3bc
 from lazyq_jax.agents.base import Act, Agent, FixedPolicy, Problem, Spec
 from lazyq_jax.agents.bc import BCConfig
 from lazyq_jax.agents.common import BaselineConfig
@@ -27,6 +28,7 @@ from lazyq_jax.agents.gcivl import GCIVLConfig
 from lazyq_jax.agents.iql import IQLConfig
 from lazyq_jax.agents.lazy import LazyAgent, LazyConfig
 from lazyq_jax.agents.naf import NAFConfig
+from lazyq_jax.agents.qrl import QRLConfig
 from lazyq_jax.agents.td3bc import TD3BCConfig
 from lazyq_jax.config import ConfigError
 
@@ -41,9 +43,10 @@ AGENTS: dict[str, tuple[type | None, Callable[..., Agent]]] = {
     "gcivl": (GCIVLConfig, gcivl.make),
     "gciql": (GCIQLConfig, gciql.make),
     "gcbc": (GCBCConfig, gcbc.make),
+    "qrl": (QRLConfig, qrl.make),
     "random": (None, reference.make),
 }
-BASELINES = ("iql", "td3bc", "dqn", "naf", "bc", "gcivl", "gciql", "gcbc")
+BASELINES = ("iql", "td3bc", "dqn", "naf", "bc", "gcivl", "gciql", "gcbc", "qrl")
 METHODS = (*AGENTS, "scripted")
 
 
@@ -77,7 +80,27 @@ def make(name: str, config: Any = None, action_length: float = 0.1, *, problem: 
     return build(config, problem, **options)
 
 
-__all__ = ["AGENTS", "Act", "Agent", "BASELINES", "BCConfig", "BaselineConfig", "DQNConfig",
-           "FixedPolicy", "GCBCConfig", "GCIQLConfig", "GCIVLConfig", "IQLConfig", "LazyAgent",
-           "LazyConfig", "METHODS", "NAFConfig", "Problem", "Spec", "TD3BCConfig", "config_class",
-           "make"]
+__all__ = [
+    "AGENTS",
+    "BASELINES",
+    "METHODS",
+    "Act",
+    "Agent",
+    "BCConfig",
+    "BaselineConfig",
+    "DQNConfig",
+    "FixedPolicy",
+    "GCBCConfig",
+    "GCIQLConfig",
+    "GCIVLConfig",
+    "IQLConfig",
+    "LazyAgent",
+    "LazyConfig",
+    "NAFConfig",
+    "Problem",
+    "QRLConfig",
+    "Spec",
+    "TD3BCConfig",
+    "config_class",
+    "make",
+]

@@ -14,7 +14,7 @@ each row's trajectory's last transition), a goal index per row:
 The goal is that row's state; ``success = (goal index == idx)``, ``r = success - 1``,
 ``done = success`` (OGBench's ``gc_negative``; ``masks = 1 - success``).  OGBench's
 defaults, used by its GCIVL, GCIQL and GCBC: value goals ``(0.2, 0.5, geometric)``, actor
-goals ``(0, 1, uniform)``.
+goals ``(0, 1, uniform)``; its QRL's value goals are random states ``(0, 0)``.
 """
 
 from __future__ import annotations
@@ -83,12 +83,14 @@ def sample_goal_rows(key: jax.Array, idx: jax.Array, last: jax.Array, n_valid: j
 
 
 def minibatches(source: str, data: Transitions, idx: jax.Array, key: jax.Array,
-                n_valid: jax.Array, discount: float, who: str) -> tuple[Transitions, Transitions]:
+                n_valid: jax.Array, discount: float, who: str, value: GoalMix = VALUE_GOALS,
+                actor: GoalMix = ACTOR_GOALS) -> tuple[Transitions, Transitions]:
     """``(value batch, actor batch)`` of rows ``idx`` for a goal-conditioned agent: OGBench's
-    fresh goals from the trajectories (:func:`goal_batches`) if ``source`` and the data say so
-    (:func:`uses_trajectories`), else the rows as they are, twice."""
+    fresh goals (``value``, ``actor``: the agent's mixtures) from the trajectories
+    (:func:`goal_batches`) if ``source`` and the data say so (:func:`uses_trajectories`), else
+    the rows as they are, twice."""
     if uses_trajectories(source, data, who):
-        return goal_batches(data, idx, key, n_valid, discount)
+        return goal_batches(data, idx, key, n_valid, discount, value, actor)
     rows = take(data, idx)
     return rows, rows
 
