@@ -21,7 +21,7 @@ from conftest import cli
 from lazyq_jax import agents, tasks
 from lazyq_jax.config import ConfigError, override
 from lazyq_jax.keys import purpose_key
-from lazyq_jax.run import load_policy, load_run
+from lazyq_jax.run import load_policy, load_run, run
 from lazyq_jax.run.results import method_summary
 from lazyq_jax.run.rundir import check_methods, check_seeds, parse_method
 from lazyq_jax.run.sources import static_data
@@ -249,3 +249,11 @@ def test_the_suites_timeout_scale_is_validated(monkeypatch):
         monkeypatch.setenv("LAZYQ_TEST_TIMEOUT_SCALE", bad)
         with pytest.raises(pytest.UsageError, match="must be a positive number"):
             conftest._timeout_scale()
+
+
+def test_a_method_that_cannot_learn_from_the_data_is_refused_before_any_trains(tmp_path):
+    """QRL's goals must be states and the push's are angles: the run stops with a config error
+    before lazy Q, listed first, trains."""
+    with pytest.raises(ConfigError, match="goals must be states"):
+        run(CONFIG, tmp_path / "r", seeds=[3], methods=["lazy", "qrl"], progress=False)
+    assert (tmp_path / "r" / "data").exists() and not (tmp_path / "r" / "lazy").exists()

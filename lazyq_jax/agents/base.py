@@ -157,6 +157,10 @@ class Agent:
     blocks: int = 1
 
     # --- training
+    def check_data(self, spec: Spec) -> None:
+        """``ValueError`` saying why, when this agent cannot learn from data of these sizes
+        (the runner asks every method before it trains any).  Default: any sizes."""
+
     def init(self, key: jax.Array, data: Transitions) -> Any:
         """The initial state, sized from ``data`` (its shapes only)."""
         raise NotImplementedError

@@ -84,6 +84,7 @@ from lazyq_jax.agents.common import (
 from lazyq_jax.agents.gcbc import GCMLP, actor_mean, actor_net, actor_stats
 from lazyq_jax.agents.gcivl import check_bool
 from lazyq_jax.agents.goals import ACTOR_GOALS, GoalMix, check_goal_source, minibatches
+from lazyq_jax.config import ConfigError
 from lazyq_jax.types import Transitions
 
 # OGBench's QRL value goals: a random dataset state always
@@ -213,15 +214,16 @@ class QRL(Baseline):
         self.dynamics_net = GCMLP(cfg.width, cfg.depth, cfg.latent_dim, layer_norm=cfg.layer_norm)
         self.optimizer = optax.adam(cfg.learning_rate)
 
-    def check_spec(self, spec: Spec) -> None:
+    def check_data(self, spec: Spec) -> None:
+        """Goals must be states (the quasimetric compares two states)."""
         if spec.goal != spec.state_dim:
-            raise ValueError(
+            raise ConfigError(
                 f"qrl learns a quasimetric between states, so its goals must be states "
                 f"(g[N, {spec.state_dim}] for states s[N, {spec.state_dim}]); these data have "
                 f"{spec.describe()}: use a goal-conditioned method for other goals (lazy, gcivl)")
 
     def init_model(self, key: jax.Array, spec: Spec) -> Any:
-        self.check_spec(spec)
+        self.check_data(spec)
         k_phi, k_dyn, k_actor = jax.random.split(key, 3)
         ex = spec.example()
         z = jnp.zeros((1, self.config.latent_dim + spec.action_dim), jnp.float32)

@@ -33,7 +33,7 @@ from jax.sharding import Mesh
 from tqdm.auto import tqdm
 
 from lazyq_jax import agents, tasks
-from lazyq_jax.agents import Agent, FixedPolicy, LazyConfig, Problem
+from lazyq_jax.agents import Agent, FixedPolicy, LazyConfig, Problem, Spec
 from lazyq_jax.agents.base import stack_trees
 from lazyq_jax.checkpoint import CheckpointError, checkpoint_writer, latest_step, load_latest_intact
 from lazyq_jax.config import Config, ConfigError, NeighbourConfig, override, to_dict
@@ -372,6 +372,9 @@ def run(config: Config, run_dir: str | Path, *, seeds: Sequence[int] | None = No
         f"{'s' if ctx.mesh.size > 1 else ''})")
     sd = _data(ctx)
     write_json(ctx.run_dir / "timings.json", {"data_s": round(time.perf_counter() - t0, 1)})
+    spec_of_data = Spec.of(_seed_slice(sd.stacked, 0))
+    for spec in specs:  # every method can learn from these data, before any trains
+        build_agent(ctx, spec, sd)[0].check_data(spec_of_data)
     records = {}
     for spec in specs:
         records[spec.text] = _run_method(ctx, spec, sd, evaluate=evaluate)
