@@ -31,22 +31,7 @@ from lazyq_jax.types import Transitions
 PACKAGE = qrl.iqe_components
 
 
-def ogbench_components(x, y, k):
-    """OGBench's ``GCIQEValue`` computation (``impls/utils/networks.py`` at 1d4140997f60)."""
-    x = jnp.reshape(x, (*x.shape[:-1], -1, k))
-    y = jnp.reshape(y, (*y.shape[:-1], -1, k))
-    valid = x < y
-    xy = jnp.concatenate(jnp.broadcast_arrays(x, y), axis=-1)
-    ixy = xy.argsort(axis=-1)
-    sxy = jnp.take_along_axis(xy, ixy, axis=-1)
-    neg_inc_copies = jnp.take_along_axis(valid, ixy % k, axis=-1) * jnp.where(ixy < k, -1, 1)
-    neg_inp_copies = jnp.cumsum(neg_inc_copies, axis=-1)
-    neg_f = -1.0 * (neg_inp_copies < 0)
-    neg_incf = jnp.concatenate([neg_f[..., :1], neg_f[..., 1:] - neg_f[..., :-1]], axis=-1)
-    return (sxy * neg_incf).sum(axis=-1)
-
-
-VARIANTS = {"ogbench": ogbench_components, "package": PACKAGE}
+VARIANTS = {"ogbench": qrl.iqe_components_sorted, "package": PACKAGE}
 
 
 def data(n: int = 100_000) -> Transitions:

@@ -59,22 +59,6 @@ def np_iqe(x, y, alpha_raw, k):
     return a * lengths.mean(-1) + (1 - a) * lengths.max(-1)
 
 
-def ogbench_components(x, y, k):
-    """OGBench's ``GCIQEValue`` computation (``impls/utils/networks.py`` at 1d4140997f60), as
-    published: a sort of the ``2k`` end points and a running count of open intervals."""
-    x = jnp.reshape(x, (*x.shape[:-1], -1, k))
-    y = jnp.reshape(y, (*y.shape[:-1], -1, k))
-    valid = x < y
-    xy = jnp.concatenate(jnp.broadcast_arrays(x, y), axis=-1)
-    ixy = xy.argsort(axis=-1)
-    sxy = jnp.take_along_axis(xy, ixy, axis=-1)
-    neg_inc_copies = jnp.take_along_axis(valid, ixy % k, axis=-1) * jnp.where(ixy < k, -1, 1)
-    neg_inp_copies = jnp.cumsum(neg_inc_copies, axis=-1)
-    neg_f = -1.0 * (neg_inp_copies < 0)
-    neg_incf = jnp.concatenate([neg_f[..., :1], neg_f[..., 1:] - neg_f[..., :-1]], axis=-1)
-    return (sxy * neg_incf).sum(axis=-1)
-
-
 def hard_cases():
     """Groups of 4 intervals with ties, nesting, touching, identical and empty intervals."""
     rows = [([0, 1, 2, 3], [1, 2, 3, 4]),          # touching: one interval of length 4
@@ -94,6 +78,8 @@ def test_iqe_components_are_unions_of_intervals():
     x, y = hard_cases()
     got = np.asarray(qrl.iqe_components(jnp.asarray(x), jnp.asarray(y), 4))
     np.testing.assert_array_equal(got[:, 0], [4, 4, 5, 1, 1, 0, 4, 5])  # exact: small integers
+    ogbench = np.asarray(qrl.iqe_components_sorted(jnp.asarray(x), jnp.asarray(y), 4))
+    np.testing.assert_array_equal(ogbench[:, 0], got[:, 0])
     rng = np.random.default_rng(0)
     for k in (1, 3, 8):
         x = rng.normal(size=(40, 4 * k)).astype(np.float32)
@@ -112,7 +98,7 @@ def test_iqe_value_and_gradient_match_ogbenchs_sort():
     y = jnp.asarray(rng.normal(size=(64, 32)), jnp.float32)
     w = jnp.asarray(rng.normal(size=(64, 4)), jnp.float32)  # weights of the 4 groups
     ours = lambda x, y: jnp.sum(qrl.iqe_components(x, y, 8) * w)
-    theirs = lambda x, y: jnp.sum(ogbench_components(x, y, 8) * w)
+    theirs = lambda x, y: jnp.sum(qrl.iqe_components_sorted(x, y, 8) * w)
     np.testing.assert_allclose(ours(x, y), theirs(x, y), rtol=1e-5)
     for got, want in zip(jax.grad(ours, (0, 1))(x, y), jax.grad(theirs, (0, 1))(x, y), strict=True):
         # each entry is a sum of +-w over at most one group: exact up to one rounding
