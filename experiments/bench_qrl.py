@@ -29,8 +29,6 @@ from lazyq_jax.agents.base import Problem
 from lazyq_jax.types import Transitions
 
 PACKAGE = qrl.iqe_components
-
-
 VARIANTS = {"ogbench": qrl.iqe_components_sorted, "package": PACKAGE}
 
 
@@ -48,8 +46,11 @@ def main() -> None:
     p.add_argument("--width", type=int, default=128)
     p.add_argument("--steps", type=int, default=50)
     p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--variants", default="ogbench,autodiff,package")
+    p.add_argument("--variants", default="ogbench,package", help=f"comma-separated: {', '.join(VARIANTS)}")
     args = p.parse_args()
+    unknown = set(args.variants.split(",")) - set(VARIANTS)
+    if unknown:
+        p.error(f"unknown variants {sorted(unknown)}; choose from {', '.join(VARIANTS)}")
     d = data()
     agent = qrl.make(qrl.QRLConfig(width=args.width, steps=args.steps, blocks=1),
                      Problem(action_length=1.0, action_set="box"))
