@@ -33,6 +33,9 @@ accurate to a few steps).
     .venv/bin/python experiments/pointmaze_oracle.py runs/pm_vinit --skip-fixed-point \
         --skip-policy --probe-radius 0.5 0.25 0.15 0.1 --pairs 100000 \
         --out runs/pm_vinit/radius_probe.json                          # the radius probe
+    .venv/bin/python experiments/pointmaze_oracle.py runs/pm_rl10 --skip-fixed-point --only-values \
+        --values runs/pm_qrl_eq_s0:qrl:width=128:steps=11689 --distance-values \
+        --out runs/pm_qrl_eq_s0/oracle.json                            # lazy policy on QRL's d
 """
 
 from __future__ import annotations
@@ -320,6 +323,11 @@ def main() -> None:
     p.add_argument("--pairs", type=int, default=200000, help="rows scored for the fixed point")
     p.add_argument("--values", nargs="*", default=[], metavar="RUN_DIR:METHOD",
                    help="also the policy with other trained values (e.g. GCIVL's V of the same seed)")
+    p.add_argument("--only-values", action="store_true",
+                   help="evaluate the policy only with the --values tables (not V*, V_line, the run's V)")
+    p.add_argument("--distance-values", action="store_true",
+                   help="the --values are negated distances in steps (QRL's V = -d): also their "
+                        "discounted return -(1 - gamma^d) / (1 - gamma)")
     p.add_argument("--skip-fixed-point", action="store_true")
     p.add_argument("--skip-policy", action="store_true")
     p.add_argument("--probe-k", type=int, nargs="*", default=[],
@@ -367,7 +375,13 @@ def main() -> None:
         if other.seeds[0] != seed:
             raise SystemExit(f"{spec}: seed {other.seeds[0]}, not the lazy run's {seed}")
         fn = other.agent.value_fn(other.state())
-        tables[f"V of {method.split(':steps=')[0]}"] = table(at_next(fn))
+        name = f"V of {method.split(':steps=')[0]}"
+        v_other = at_next(fn)
+        tables[name] = table(v_other)
+        if args.distance_values:  # d = -V steps -> the discounted return of d steps of reward -1
+            d = np.maximum(-v_other.astype(np.float64), 0.0)
+            tables[name + ", discounted"] = table((-(1.0 - gamma ** d) / (1.0 - gamma)).astype(np.float32))
+    other_names = [n for n in tables if n.startswith("V of ")]
     results: dict = {"run_dir": args.run_dir, "seed": seed, "policy": {}, "fixed_point": {}}
 
     # ---- the fixed point: T V at the rows (the run's neighbourhoods of block 0)
@@ -382,7 +396,10 @@ def main() -> None:
 
     # ---- the policy with each value table
     base = agent.policies(loaded.states, sd.stacked, sd.n_valid)
-    for name, y in ({} if args.skip_policy else tables).items():
+    evaluated = {} if args.skip_policy else tables
+    if args.only_values:
+        evaluated = {n: tables[n] for n in other_names}
+    for name, y in evaluated.items():
         values = np.zeros(np.shape(base.values), np.float32)
         values[0, :n] = y
         policy = base.replace(values=jnp.asarray(values))
