@@ -397,7 +397,7 @@ def main() -> None:
     # ---- the policy with each value table
     base = agent.policies(loaded.states, sd.stacked, sd.n_valid)
     evaluated = {} if args.skip_policy else tables
-    if args.only_values:
+    if args.only_values and not args.skip_policy:
         evaluated = {n: tables[n] for n in other_names}
     for name, y in evaluated.items():
         values = np.zeros(np.shape(base.values), np.float32)
