@@ -36,6 +36,9 @@ accurate to a few steps).
     .venv/bin/python experiments/pointmaze_oracle.py runs/pm_rl10 --skip-fixed-point --only-values \
         --values runs/pm_qrl_eq_s0:qrl:width=128:steps=11689 --distance-values \
         --out runs/pm_qrl_eq_s0/oracle.json                            # lazy policy on QRL's d
+    .venv/bin/python experiments/pointmaze_oracle.py runs/pm_rl10 --skip-fixed-point \
+        --query-goal-only --values runs/pm_qrl_eq_s0:qrl:width=128:steps=11689 \
+        --out runs/pm_qrl_eq_s0/oracle_qg.json       # the run's V and QRL's d at the query's goal
 """
 
 from __future__ import annotations
@@ -59,6 +62,8 @@ from lazyq_jax.local_model import (
     neighbour_offsets,
 )
 from lazyq_jax.neighbours import find_neighbours
+from lazyq_jax.neighbours.query import query_policy, stack_policy_indices
+from lazyq_jax.policy import policy_index
 from lazyq_jax.run import load_run
 from lazyq_jax.stats import format_ci, t_interval
 from lazyq_jax.targets import bootstrap_values, evaluate_in_batches, in_sample_target, lazy_target
@@ -294,6 +299,32 @@ def radius_probe(args, agent, data, seed, n, s, g, geo, gamma, config, tables, r
     results["radius_probe"] = out
 
 
+def query_goal_act(value_fn, gamma: float, action_length: float, action_set: str):
+    """Eq. (9)'s greedy step with the neighbours' values taken at the *query's* goal:
+    neighbourhoods in state space only (k rows within the state radius, any goal), each
+    neighbour's ``y_j = -1 + gamma V(s'_j, g)`` computed at every step from ``value_fn``
+    (OGBench's relabelled reward is -1 until the goal *is* the state, never for a query goal),
+    and the local model with state offsets (``y_j ~ alpha + beta.a_j + c.(s_j - s)``).  The
+    tabulated policy instead reads ``y_j`` at the row's own goal ``g_j``, within the goal
+    radius of ``g``, and absorbs ``g_j - g`` with goal offsets.  ``act_of(p)`` for the task's
+    evaluation; ``p``: ``index`` (a state-only policy index), ``actions``, ``states``, ``next``."""
+
+    def act_of(p):
+        def act(key, s, g):
+            nb = query_policy(p["index"], key, s, None)
+            rows = jnp.maximum(nb.idx, 0)
+            s2 = p["next"][rows]
+            gq = jnp.broadcast_to(g[:, None, :], s2.shape)
+            y = -1.0 + gamma * value_fn(s2.reshape(-1, s2.shape[-1]),
+                                        gq.reshape(-1, gq.shape[-1])).reshape(rows.shape)
+            offsets = neighbour_offsets(p["states"][rows], s)
+            _, beta = fit_local_linear(p["actions"][rows], y, None, offsets=offsets)
+            found = nb.level >= 0
+            return jnp.where(found[:, None], greedy_action(beta, action_length, action_set), 0.0)
+        return act
+    return act_of
+
+
 def policy_table(paths) -> None:
     """The policy's success with each value over the seeds of several oracle.json files: mean
     [95 % t interval] of the 5-task success, and each task's mean."""
@@ -328,6 +359,11 @@ def main() -> None:
     p.add_argument("--distance-values", action="store_true",
                    help="the --values are negated distances in steps (QRL's V = -d): also their "
                         "discounted return -(1 - gamma^d) / (1 - gamma)")
+    p.add_argument("--query-goal", action="store_true",
+                   help="also the greedy step with each learned V (the run's and --values') taken "
+                        "at the query's goal, neighbourhoods in state space (query_goal_act)")
+    p.add_argument("--query-goal-only", action="store_true",
+                   help="evaluate only the --query-goal policies (none of the tabulated ones)")
     p.add_argument("--skip-fixed-point", action="store_true")
     p.add_argument("--skip-policy", action="store_true")
     p.add_argument("--probe-k", type=int, nargs="*", default=[],
@@ -362,6 +398,7 @@ def main() -> None:
     v_star_next = value_of(geo.length(s2, g), gamma).astype(np.float32)
     v_line_next = value_of(np.abs(s2 - g).max(1), gamma).astype(np.float32)
     v_trained = agent.value_fn(loaded.state())
+    learned = {} if args.only_values else {"trained V": v_trained}  # value functions for --query-goal
 
     def at_next(v):  # V(s'_j, g_j) of every row, in chunks
         return np.asarray(evaluate_in_batches(v, jnp.asarray(s2), jnp.asarray(g), 65536))
@@ -376,6 +413,7 @@ def main() -> None:
             raise SystemExit(f"{spec}: seed {other.seeds[0]}, not the lazy run's {seed}")
         fn = other.agent.value_fn(other.state())
         name = f"V of {method.split(':steps=')[0]}"
+        learned[name] = fn
         v_other = at_next(fn)
         tables[name] = table(v_other)
         if args.distance_values:  # d = -V steps -> the discounted return of d steps of reward -1
@@ -396,8 +434,8 @@ def main() -> None:
 
     # ---- the policy with each value table
     base = agent.policies(loaded.states, sd.stacked, sd.n_valid)
-    evaluated = {} if args.skip_policy else tables
-    if args.only_values and not args.skip_policy:
+    evaluated = {} if args.skip_policy or args.query_goal_only else tables
+    if args.only_values and not (args.skip_policy or args.query_goal_only):
         evaluated = {n: tables[n] for n in other_names}
     for name, y in evaluated.items():
         values = np.zeros(np.shape(base.values), np.float32)
@@ -409,6 +447,20 @@ def main() -> None:
         results["policy"][name] = res
         print(f"policy with {name}: {loaded.task.log_line(ev.per_seed[0])} "
               f"({time.perf_counter() - t:.0f} s)", flush=True)
+    if (args.query_goal or args.query_goal_only) and not args.skip_policy:
+        nc = config.neighbours
+        index = stack_policy_indices([policy_index(s, None, k=nc.k, radius_s=nc.radius_s,
+                                                   radius_g=nc.radius_g, growth=nc.growth,
+                                                   max_level=nc.max_level, n_valid=n)])
+        p = {"index": index, "actions": jnp.asarray(np.asarray(data.a[:n]))[None],
+             "states": jnp.asarray(s)[None], "next": jnp.asarray(s2)[None]}
+        for name, fn in learned.items():
+            act_of = query_goal_act(fn, gamma, agent.problem.action_length, agent.problem.action_set)
+            t = time.perf_counter()
+            ev = loaded.task.evaluate(act_of, p, config, [seed])
+            results["policy"][name + ", at the query's goal"] = ev.per_seed[0]["tasks"]
+            print(f"policy with {name} at the query's goal: {loaded.task.log_line(ev.per_seed[0])} "
+                  f"({time.perf_counter() - t:.0f} s)", flush=True)
     out = Path(args.out) if args.out else Path(args.run_dir) / "oracle.json"
     out.write_text(json.dumps(results, indent=1))
     print(f"-> {out}")
