@@ -452,12 +452,12 @@ def main() -> None:
         index = stack_policy_indices([policy_index(s, None, k=nc.k, radius_s=nc.radius_s,
                                                    radius_g=nc.radius_g, growth=nc.growth,
                                                    max_level=nc.max_level, n_valid=n)])
-        p = {"index": index, "actions": jnp.asarray(np.asarray(data.a[:n]))[None],
-             "states": jnp.asarray(s)[None], "next": jnp.asarray(s2)[None]}
+        qg = {"index": index, "actions": jnp.asarray(np.asarray(data.a[:n]))[None],
+              "states": jnp.asarray(s)[None], "next": jnp.asarray(s2)[None]}
         for name, fn in learned.items():
             act_of = query_goal_act(fn, gamma, agent.problem.action_length, agent.problem.action_set)
             t = time.perf_counter()
-            ev = loaded.task.evaluate(act_of, p, config, [seed])
+            ev = loaded.task.evaluate(act_of, qg, config, [seed])
             results["policy"][name + ", at the query's goal"] = ev.per_seed[0]["tasks"]
             print(f"policy with {name} at the query's goal: {loaded.task.log_line(ev.per_seed[0])} "
                   f"({time.perf_counter() - t:.0f} s)", flush=True)
