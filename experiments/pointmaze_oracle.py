@@ -406,6 +406,7 @@ def main() -> None:
     v_net_next = at_next(v_trained)
     tables = {"V* (walls)": table(v_star_next), "V_line (no walls)": table(v_line_next),
               "trained V": table(v_net_next)}
+    others = {}  # the --values' tables
     for spec in args.values:
         run_dir, method = spec.split(":", 1)
         other = load_run(run_dir, method)
@@ -415,11 +416,11 @@ def main() -> None:
         name = f"V of {method.split(':steps=')[0]}"
         learned[name] = fn
         v_other = at_next(fn)
-        tables[name] = table(v_other)
+        others[name] = table(v_other)
         if args.distance_values:  # d = -V steps -> the discounted return of d steps of reward -1
             d = np.maximum(-v_other.astype(np.float64), 0.0)
-            tables[name + ", discounted"] = table((-(1.0 - gamma ** d) / (1.0 - gamma)).astype(np.float32))
-    other_names = [n for n in tables if n.startswith("V of ")]
+            others[name + ", discounted"] = table((-(1.0 - gamma ** d) / (1.0 - gamma)).astype(np.float32))
+    tables.update(others)
     results: dict = {"run_dir": args.run_dir, "seed": seed, "policy": {}, "fixed_point": {}}
 
     # ---- the fixed point: T V at the rows (the run's neighbourhoods of block 0)
@@ -434,9 +435,7 @@ def main() -> None:
 
     # ---- the policy with each value table
     base = agent.policies(loaded.states, sd.stacked, sd.n_valid)
-    evaluated = {} if args.skip_policy or args.query_goal_only else tables
-    if args.only_values and not (args.skip_policy or args.query_goal_only):
-        evaluated = {n: tables[n] for n in other_names}
+    evaluated = {} if args.skip_policy or args.query_goal_only else others if args.only_values else tables
     for name, y in evaluated.items():
         values = np.zeros(np.shape(base.values), np.float32)
         values[0, :n] = y
