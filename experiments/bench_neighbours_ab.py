@@ -1,7 +1,10 @@
 """Old against new in one process: the paper-case ``search_all`` (and ``build_index``) of an
 earlier checkout beside the current package, timed alternately (the machine's speed drifts
 by 15-30 % between runs and processes, so only an alternating A/B in one process says
-whether a change made the search faster).
+whether a change made the search faster).  ``--space 2a`` (``3a``, ``4a``, ``6a``, ``3v``)
+times the general search (``neighbours.nd``'s ``build_index_nd`` / ``search_all_nd``) on
+``bench_neighbours_nd.py``'s data of that case instead.  Both versions' results (same key)
+are compared element by element: a speed change must not change a neighbourhood.
 
 The old package is copied from ``--old`` (a checkout, e.g. ``git worktree add /tmp/old
 9fad38e``) into a temporary folder as ``lazyq_old`` (its imports renamed), so both import
@@ -9,6 +12,7 @@ side by side.  Same data as ``bench_neighbours.py`` (N = Q = 1M, k = 20).
 
     git worktree add /tmp/old 9fad38e
     flock /tmp/lazyq_bench.lock .venv/bin/python experiments/bench_neighbours_ab.py --old /tmp/old
+    flock /tmp/lazyq_bench.lock .venv/bin/python experiments/bench_neighbours_ab.py --old /tmp/old --space 3a
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ import jax
 import numpy as np
 
 from bench_neighbours import GROWTH, K, RG, RS, paper_like_data
+from bench_neighbours_nd import make_data
 
 
 def import_old(checkout: str, into: str):
@@ -44,25 +49,44 @@ def main():
     ap.add_argument("--old", required=True, help="a checkout of the earlier version")
     ap.add_argument("--repeats", type=int, default=8)
     ap.add_argument("--n", type=int, default=1_000_000)
+    ap.add_argument("--space", default="paper",
+                    help="paper (the grid's search) or a general case of bench_neighbours_nd.py: 2a, 3a, 4a, 6a, 3v")
     args = ap.parse_args()
     import lazyq_jax.neighbours as new
 
     with tempfile.TemporaryDirectory() as tmp:
         old = import_old(args.old, tmp)
-        s, g = paper_like_data(args.n)
+        if args.space == "paper":
+            s, g = paper_like_data(args.n)
+
+            def build(m):
+                return m.build_index(s, g, k=K, radius_s=RS, radius_g=RG, growth=GROWTH, max_level=0)
+
+            def search(m, index, key):
+                return m.search_all(index, key, s, g)
+        else:
+            s, g, _ = make_data(args.n, int(args.space[:-1]), {"a": "angle", "v": "vector"}[args.space[-1]])
+
+            def build(m):
+                return m.nd.build_index_nd(s, g, k=K, radius_s=RS, radius_g=RG, growth=GROWTH)
+
+            def search(m, index, key):
+                return m.nd.search_all_nd(index, key, s, g)
         versions = {"old": old, "new": new}
         times = {f"{v} {what}": [] for v in versions for what in ("build", "search")}
+        results = {}
         for name, m in versions.items():  # compile both first
-            index = m.build_index(s, g, k=K, radius_s=RS, radius_g=RG, growth=GROWTH, max_level=0)
-            jax.block_until_ready(m.search_all(index, jax.random.key(0), s, g))
+            results[name] = jax.block_until_ready(search(m, build(m), jax.random.key(0)))
+        same = all(np.array_equal(np.asarray(getattr(results["old"], f)), np.asarray(getattr(results["new"], f)))
+                   for f in ("idx", "level", "count"))
+        print(f"space {args.space}: old and new neighbourhoods (key 0) {'identical' if same else 'DIFFER'}")
         for r in range(args.repeats):
             order = list(versions.items()) if r % 2 else list(versions.items())[::-1]
             for name, m in order:
                 t0 = time.perf_counter()
-                index = jax.block_until_ready(
-                    m.build_index(s, g, k=K, radius_s=RS, radius_g=RG, growth=GROWTH, max_level=0))
+                index = jax.block_until_ready(build(m))
                 t1 = time.perf_counter()
-                jax.block_until_ready(m.search_all(index, jax.random.key(r + 1), s, g))
+                jax.block_until_ready(search(m, index, jax.random.key(r + 1)))
                 t2 = time.perf_counter()
                 times[f"{name} build"].append(t1 - t0)
                 times[f"{name} search"].append(t2 - t1)

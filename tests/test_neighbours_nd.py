@@ -12,6 +12,7 @@ import pytest
 
 from lazyq_jax.neighbours.common import TWO_PI, radius_tables, wrap_angle
 from lazyq_jax.neighbours.nd import (
+    _pack,
     build_index_nd,
     find_neighbours_nd,
     membership_level_reference,
@@ -172,6 +173,22 @@ def test_deterministic_and_independent_of_batching():
     other_key = search_all_nd(index, jax.random.key(12), qs, qg)
     assert (np.asarray(other_key.idx) != np.asarray(full.idx)).any()
     np.testing.assert_array_equal(np.asarray(other_key.level), np.asarray(full.level))
+
+
+def test_chunk_packing_is_greedy_within_both_bounds():
+    """_pack against a query-by-query loop: a chunk takes the next query while it then holds at
+    most ``limit`` items and ``c`` queries (a query larger than ``limit`` gets a chunk alone)."""
+    rng = np.random.default_rng(0)
+    for n, limit, c in ((1, 5, 4), (500, 40, 7), (500, 400, 64), (300, 3, 1000)):
+        n_it = rng.integers(0, 12, n)
+        n_it[rng.integers(0, n, 3)] = limit + 5  # over the limit alone
+        ref, items, rows = [], 0, 0
+        for q, x in enumerate(n_it):
+            if q == 0 or items + x > limit or rows + 1 > c:
+                ref.append(q)
+                items, rows = 0, 0
+            items, rows = items + x, rows + 1
+        np.testing.assert_array_equal(_pack(n_it, limit, c), ref)
 
 
 def test_sampling_is_uniform():
