@@ -30,17 +30,24 @@ membership is always the exact float32 formula on all dimensions.
 *Phases with static capacities* (``index.phases``, chosen on the host from the data
 and ``max_level``).  Phase 0 evaluates levels ``0..h_0`` (one membership word per level
 and item) for every query of the batch; the queries with fewer than ``k`` members at
-``h_0`` go to phase 1 (levels ``h_0+1..h_1``, the stencil of ``h_1``), in rounds of
-``S_1 = max(8, ceil(frac_1 Q))`` slots, and so on up to ``max_level``.  A phase's round has
-a pool of ``S_p * cap_p`` items of ``W = 32`` entries shared by its slots, packed smallest
-stencil first; queries that do not fit wait for the next round (a ``while_loop``: one
-round unless the batch is unusual, e.g. far from the data).  ``h_p``, ``frac_p`` and
+``h_0`` go to phase 1 (levels ``h_0+1..h_1``, the stencil of ``h_1``), in rounds, and so
+on up to ``max_level``.  A later phase's round has a pool of ``S_p * cap_p`` items of
+``W = 32`` entries, ``S_p = max(8, ceil(frac_p Q))``, shared by ``min(Q, 8 S_p)`` slots
+(``_SLOT_FACTOR``), packed smallest stencil first; queries that do not fit wait for the
+next round (a ``while_loop``: one round unless the batch is unusual, e.g. far from the
+data).  The extra slots are for queries far from the data's pairs, which need high
+levels but have small stencils there: pointmaze's evaluation steps took many rounds of a
+mostly empty pool with one slot per ``cap_p`` (a trained run's evaluation 70.7 s with
+one slot per ``cap_p``, 40.4 s with 8, the same outcomes; queries near the data pay a
+little for the slots' ranges and sampling: 0.012 -> 0.015 ms a query on the push task's
+data, 0.046 -> 0.053 ms on arm-long's, ``experiments/bench_policy_2d.py``, one run
+each).  ``h_p``, ``frac_p`` and
 ``cap_p`` come from a sample of queries (default: data points moved by about a radius):
 the schedule and grid of least estimated work (an extra phase must save 15%: each costs
 ~2-3 s of compile), ``frac_p`` 1.5x the estimated share still short of ``k`` (+3%),
 ``cap_p`` 1.1x the 99th percentile of the exact items a query needs (full table).  The
-work of a round is therefore bounded by ``S_p (cap_p W + ranges_p)`` entry tests plus
-``S_p k (k + log2(S_p cap_p))`` for sampling, whatever its queries.  Measured (N = 1M,
+work of a round is therefore bounded by ``S_p cap_p W + 8 S_p ranges_p`` entry tests and
+range lookups plus ``8 S_p k (k + log2(S_p cap_p))`` for sampling, whatever its queries.  Measured (N = 1M,
 arm-like data, 320 queries, 2 shared cores): d_s = 3 phases 0-4 (320 x 56 items) and 5
 (16 x 88): 0.07-0.13 ms a query; d_s = 5 one phase 0-5 (320 x 90): 0.11-0.14 ms; the
 scan 11-14 ms (experiments/bench_neighbours_query.py); max_level 10 instead of 5: 0.14
@@ -808,16 +815,18 @@ def _cells(index: PolicyIndex, qcols):
     return jnp.stack(ips), jnp.stack(frs)
 
 
-def _phase(index: PolicyIndex, seeds, real, qcols, ip, fr, phase: Phase, n_slots: int):
-    """Levels ``phase.lo..phase.hi`` for ``n_slots`` queries sharing ``n_slots * phase.cap`` items
-    (packed smallest stencil first).
+_SLOT_FACTOR = 8  # slots of a later phase's round per S_p of its pool (module docstring)
+
+
+def _phase(index: PolicyIndex, seeds, real, qcols, ip, fr, phase: Phase, n_slots: int, cap: int):
+    """Levels ``phase.lo..phase.hi`` for ``n_slots`` queries sharing ``cap`` items (packed
+    smallest stencil first).
 
     Returns ``(idx, level, count, fit, hopeless)``; ``level == -1`` where ``|B_hi| < k``
     (``count`` then ``|B_hi|``).  Only rows that ``fit`` hold a result; the others may fit
     a later round, except ``hopeless`` ones (a stencil above the whole pool).
     """
     k = index.k
-    cap = n_slots * phase.cap
     start, length, bad = _ranges(jnp, index.grid, index.offsets, ip, fr, phase.hi, index.growth)
     length = jnp.where(real[:, None], length, 0)
     need = jnp.sum((length + W - 1) // W, axis=1)
@@ -880,15 +889,20 @@ def query_policy(index: PolicyIndex, key, query_s, query_g=None, *, fallback=Tru
     ip, fr = _cells(index, jnp.where(real, qcols, 0.0))
     pending = real
     for phase in index.phases:
-        n_slots = phase.slots(q)
+        # A later phase's round: a pool of slots(q) * cap items, shared by _SLOT_FACTOR times as
+        # many slots (queries far from the data's (state, goal) pairs need high levels but
+        # small stencils there; with one slot per cap they took many rounds of a mostly
+        # empty pool).
+        n_pool = phase.slots(q) * phase.cap
+        n_slots = q if phase.lo == 0 else min(q, _SLOT_FACTOR * phase.slots(q))
 
-        def round_(state, phase=phase, n_slots=n_slots):  # the next n_slots queries of the phase
+        def round_(state, phase=phase, n_slots=n_slots, n_pool=n_pool):  # the next n_slots queries
             todo, idx, level, count, over = state
             rows = jnp.nonzero(todo, size=n_slots, fill_value=q)[0].astype(jnp.int32)
             sel = jnp.minimum(rows, q - 1)
             slot = rows < q
             r_idx, r_level, r_count, fit, hopeless = _phase(index, seeds[sel], slot, qcols[:, sel], ip[:, sel],
-                                                            fr[:, sel], phase, n_slots)
+                                                            fr[:, sel], phase, n_slots, n_pool)
             live = jnp.where(slot & fit, rows, q)  # out of range: dropped
             idx = idx.at[live].set(r_idx, mode="drop")
             level = level.at[live].set(r_level, mode="drop")
