@@ -47,7 +47,8 @@ the schedule and grid of least estimated work (an extra phase must save 15%: eac
 ~2-3 s of compile), ``frac_p`` 1.5x the estimated share still short of ``k`` (+3%),
 ``cap_p`` 1.1x the 99th percentile of the exact items a query needs (full table).  The
 work of a round is therefore bounded by ``S_p cap_p W + 8 S_p ranges_p`` entry tests and
-range lookups plus ``8 S_p k (k + log2(S_p cap_p))`` for sampling, whatever its queries.  Measured (N = 1M,
+range lookups plus ``8 S_p k (k + log2(S_p cap_p))`` for sampling, whatever its queries
+(the layout's cost model still counts ``S_p`` slots).  Measured before the extra slots (N = 1M,
 arm-like data, 320 queries, 2 shared cores): d_s = 3 phases 0-4 (320 x 56 items) and 5
 (16 x 88): 0.07-0.13 ms a query; d_s = 5 one phase 0-5 (320 x 90): 0.11-0.14 ms; the
 scan 11-14 ms (experiments/bench_neighbours_query.py); max_level 10 instead of 5: 0.14
@@ -309,8 +310,9 @@ def query_neighbours_scan(index: ScanIndex, key, query_s, query_g=None, *,
 
 @dataclass(frozen=True)
 class Phase:
-    """One static phase of :func:`query_policy`: levels ``lo..hi`` (the stencil of ``hi``) for
-    ``slots(Q)`` queries sharing ``slots(Q) * cap`` items."""
+    """One static phase of :func:`query_policy`: levels ``lo..hi`` (the stencil of ``hi``); a
+    later phase's round holds ``slots(Q) * cap`` items, shared by ``_SLOT_FACTOR * slots(Q)``
+    queries (at most ``Q``)."""
 
     lo: int
     hi: int
