@@ -830,8 +830,7 @@ def search_all_nd(index: NDIndex, key, query_s, query_g=None, *, n_queries: int 
         c = -(-(pending.size * 9 // 8 // n_chunks + 1) // 256) * 256
         chunk_start = np.append(_pack(n_it, limit, c), pending.size)
         n_chunks = chunk_start.size - 1
-        cum = np.concatenate([[0], np.cumsum(n_it)])
-        cap = _bucket(np.diff(cum[chunk_start]).max())
+        cap = _bucket(np.add.reduceat(n_it, chunk_start[:-1]).max())
         if item_capacity is not None:
             cap = int(item_capacity)
         steps = _steps(max_n)

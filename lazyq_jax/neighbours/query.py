@@ -891,12 +891,10 @@ def query_policy(index: PolicyIndex, key, query_s, query_g=None, *, fallback=Tru
     ip, fr = _cells(index, jnp.where(real, qcols, 0.0))
     pending = real
     for phase in index.phases:
-        # A later phase's round: a pool of slots(q) * cap items, shared by _SLOT_FACTOR times as
-        # many slots (queries far from the data's (state, goal) pairs need high levels but
-        # small stencils there; with one slot per cap they took many rounds of a mostly
-        # empty pool).
+        # A round's pool of slots(q) * cap items, shared by up to _SLOT_FACTOR times as many
+        # queries (module docstring; phase 0 already takes all q).
         n_pool = phase.slots(q) * phase.cap
-        n_slots = q if phase.lo == 0 else min(q, _SLOT_FACTOR * phase.slots(q))
+        n_slots = min(q, _SLOT_FACTOR * phase.slots(q))
 
         def round_(state, phase=phase, n_slots=n_slots, n_pool=n_pool):  # the next n_slots queries
             todo, idx, level, count, over = state
