@@ -21,7 +21,9 @@ Two measurements on one trained lazy run (its first seed, its data, its neighbou
 * **Radius probe** (``--probe-radius``): ``T(V*) - V*`` and ``T(V_line) - V_line`` on the
   wall pairs by the state's distance from a wall, for the exact Bellman backup (OGBench's
   env step over a grid of box actions) and for Eq. (8)'s target at other state radii: how
-  much a backup tells the walls-aware value from the straight-line one.
+  much a backup tells the walls-aware value from the straight-line one.  With
+  ``--probe-query-goal`` also the backup of ``train.bootstrap_goal="row"`` (state-space
+  neighbourhoods, each neighbour's next state valued at the row's goal).
 
 ``V*`` and ``V_line`` are pointmaze_walls.py's (a BFS over a 0.25 grid of free positions;
 accurate to a few steps).
@@ -33,6 +35,9 @@ accurate to a few steps).
     .venv/bin/python experiments/pointmaze_oracle.py runs/pm_vinit --skip-fixed-point \
         --skip-policy --probe-radius 0.5 0.25 0.15 0.1 --pairs 100000 \
         --out runs/pm_vinit/radius_probe.json                          # the radius probe
+    .venv/bin/python experiments/pointmaze_oracle.py runs/pm_host_s2 --skip-fixed-point \
+        --skip-policy --probe-radius 0.5 0.25 --probe-query-goal --pairs 100000 \
+        --out runs/pm_host_s2/qg_probe.json                   # the same, and at the row's goal
     .venv/bin/python experiments/pointmaze_oracle.py runs/pm_rl10 --skip-fixed-point --only-values \
         --values runs/pm_qrl_eq_s0:qrl:width=128:steps=11689 --distance-values \
         --out runs/pm_qrl_eq_s0/oracle.json                            # lazy policy on QRL's d
@@ -119,23 +124,28 @@ def run_target(train, a_nb, y_nb, offsets, action_length, action_set, clip=True)
 
 
 def fixed_point(args, agent, data, seed, n, s, g, geo, gamma, config, loaded, tables, results):
-    """T V against V* (and the trained V) at sampled rows; see the module docstring."""
-    t = time.perf_counter()
-    nb = agent.prepare(seed, data, n, 0)
-    idx = np.asarray(nb.idx[:n])
-    print(f"neighbourhoods: {time.perf_counter() - t:.0f} s", flush=True)
+    """T V against V* (and the trained V) at sampled rows; see the module docstring.  For a
+    run with ``train.bootstrap_goal="row"`` only the trained V against V* (the T's here are
+    the tabulated backup's, at the neighbours' goals)."""
     rng = np.random.default_rng(0)
     rows, v_star, wall = scored_rows(rng, args.pairs, s, g, geo, gamma)
-    clear = clearance(get_maze(config.collect.maze), s[rows])
-    ii = jnp.asarray(idx[rows])
-    offsets = model_offsets(config.neighbours.local_model, s, g, ii, rows)
-    a_nb = jnp.asarray(np.asarray(data.a[:n]))[ii]
     v_rows_net = np.asarray(agent.value_fn(loaded.state())(jnp.asarray(s[rows]), jnp.asarray(g[rows])), np.float64)
     gap = v_rows_net - v_star
     results["fixed_point"]["trained V - V*"] = {
         part: {"mean": float(gap[m].mean()), "mean_abs": float(np.abs(gap[m]).mean())}
         for part, m in (("all", np.ones_like(wall)), ("wall pairs", wall))}
     print(f"trained V - V*: {json.dumps(results['fixed_point']['trained V - V*'])}", flush=True)
+    if config.train.bootstrap_goal == "row":
+        print("train.bootstrap_goal='row': the tabulated backup's T is not this run's; skipped", flush=True)
+        return
+    t = time.perf_counter()
+    nb = agent.prepare(seed, data, n, 0)
+    idx = np.asarray(nb.idx[:n])
+    print(f"neighbourhoods: {time.perf_counter() - t:.0f} s", flush=True)
+    clear = clearance(get_maze(config.collect.maze), s[rows])
+    ii = jnp.asarray(idx[rows])
+    offsets = model_offsets(config.neighbours.local_model, s, g, ii, rows)
+    a_nb = jnp.asarray(np.asarray(data.a[:n]))[ii]
     for name in ("V* (walls)", "trained V"):
         y = tables[name]
         y_nb = jnp.asarray(y)[ii]
@@ -259,7 +269,7 @@ def exact_backup(maze, s, g, wall, clear, geo, gamma, v_star, v_line, grid=11):
     return out
 
 
-def radius_probe(args, agent, data, seed, n, s, g, geo, gamma, config, tables, results):
+def radius_probe(args, agent, data, seed, n, s, g, s2, geo, gamma, config, tables, results):
     """Which values are fixed points of Eq. (8)'s backup, for other neighbourhood radii:
     ``T(V*) - V*`` and ``T(V_line) - V_line`` (the walls ignored) at the scored rows, over the
     wall pairs and by the state's distance from a wall.  Where ``T(V_line) = V_line`` the
@@ -296,7 +306,43 @@ def radius_probe(args, agent, data, seed, n, s, g, geo, gamma, config, tables, r
             entry[name] = {part: {"rows": int(m.sum()), "mean_error": float(err[m].mean())}
                            for part, m in parts if m.any()}
         print(f"{key} ({time.perf_counter() - t:.0f} s): {json.dumps(entry)}", flush=True)
+    if args.probe_query_goal:
+        for radius_s in args.probe_radius:
+            out[f"query goal, radius_s={radius_s}"] = entry = query_goal_backup(
+                seed, s, g, s2, rows, wall, clear, v_star, v_line, geo, gamma, a_all, radius_s, nc,
+                c, action_set)
+            print(f"query goal, radius_s={radius_s}: {json.dumps(entry)}", flush=True)
     results["radius_probe"] = out
+
+
+def query_goal_backup(seed, s, g, s2, rows, wall, clear, v_star, v_line, geo, gamma, a_all, radius_s,
+                      nc, c, action_set):
+    """``T(V) - V`` for the backup at the row's own goal: neighbourhoods in state space only
+    (k rows within ``radius_s``, any goal), ``y_j = -1 + gamma V(s'_j, g)`` at the *row's*
+    goal ``g`` (none of the scored rows is at its goal), the local model with state offsets,
+    Eq. (8) over the box.  No goal offsets: the goal is the same for every neighbour."""
+    t = time.perf_counter()
+    nb = find_neighbours(purpose_key(seed, "neighbours"), s, None, s[rows], None, k=nc.k,
+                         radius_s=radius_s, radius_g=nc.radius_g, growth=nc.growth)
+    ii = np.asarray(nb.idx)
+    nxt = s2[ii].reshape(-1, 2)
+    gg = np.repeat(g[rows], ii.shape[1], axis=0)
+    offsets = neighbour_offsets(jnp.asarray(s)[ii], jnp.asarray(s[rows]))
+    level = np.asarray(nb.level)
+    entry = {"level0": float((level == 0).mean()), "mean_level": float(level.mean())}
+    for name, v_next, ref in (("V* (walls)", value_of(geo.length(nxt, gg), gamma), v_star),
+                              ("V_line (no walls)", value_of(np.abs(nxt - gg).max(1), gamma), v_line)):
+        y_nb = jnp.asarray((-1.0 + gamma * v_next).reshape(ii.shape), jnp.float32)
+        alpha, beta, _ = fit_with_offsets(a_all[ii], y_nb, offsets=offsets)
+        target, _ = lazy_target(alpha, beta, y_nb, c, True, action_set)
+        err = np.asarray(target, np.float64) - ref
+        parts = [("all", np.ones_like(wall)), ("wall pairs", wall)]
+        parts += [(f"wall pairs, state {lo}-{hi} from a wall", wall & (clear >= lo) & (clear < hi))
+                  for lo, hi in itertools.pairwise(CLEARANCE)]
+        entry[name] = {part: {"rows": int(m.sum()), "mean_error": float(err[m].mean())}
+                       for part, m in parts if m.any()}
+    entry["seconds"] = round(time.perf_counter() - t, 1)
+    return entry
 
 
 def query_goal_act(value_fn, gamma: float, action_length: float, action_set: str):
@@ -372,6 +418,9 @@ def main() -> None:
                    help="state radii for the fixed-point probe of V* and V_line (none: no probe)")
     p.add_argument("--probe-radius-g", type=float, nargs="*", default=[],
                    help="goal radii for that probe (default: the run's)")
+    p.add_argument("--probe-query-goal", action="store_true",
+                   help="with --probe-radius: also the backup at the row's own goal (state-only "
+                        "neighbourhoods, y_j = -1 + gamma V(s'_j, g))")
     p.add_argument("--probe-sigma", type=float, nargs="*", default=[0.0, 0.1, 0.2, 0.4])
     p.add_argument("--out", default=None, help="oracle.json (default: RUN_DIR/oracle.json)")
     args = p.parse_args()
@@ -431,7 +480,7 @@ def main() -> None:
         noise_probe(args, agent, data, seed, n, s, g, geo, gamma, config, v_star_next, results)
 
     if args.probe_radius:
-        radius_probe(args, agent, data, seed, n, s, g, geo, gamma, config, tables, results)
+        radius_probe(args, agent, data, seed, n, s, g, s2, geo, gamma, config, tables, results)
 
     # ---- the policy with each value table
     base = agent.policies(loaded.states, sd.stacked, sd.n_valid)

@@ -51,6 +51,7 @@ def _positive(obj: Any, *names: str) -> None:
 LOCAL_MODELS = ("action", "action+state", "action+state+goal")
 FIT_WEIGHTS = ("uniform", "epanechnikov")
 NO_MODEL_ACTIONS = ("zero", "random")
+BOOTSTRAP_GOALS = ("neighbour", "row")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -136,6 +137,14 @@ class TrainConfig:
     (:mod:`lazyq_jax.agents.goals`) and finds the neighbourhoods anew (one search each
     time); the first ``relabel_every`` cycles train on the rows' own goals.  0 (default):
     the rows' goals throughout.
+    ``bootstrap_goal``: at which goal a neighbour's next state is valued in Eq. (6)'s
+    ``y_j``: ``"neighbour"`` (the paper's: ``r_j + gamma V(s'_j, g_j)``, neighbourhoods in
+    (state, goal) space) or ``"row"``: neighbourhoods in state space only and
+    ``y_j = r_i + gamma (1 - done_i) V(s'_j, g_i)`` at the row's own goal ``g_i``, with the
+    row's reward: exact where the reward and termination depend on the state and goal alone
+    (OGBench's relabelled goal reaching, ``Problem.state_goal_reward``), and then no goal
+    offset has to absorb how V changes across the goal radius (``docs/pointmaze.md``).  The
+    policy then values each neighbour's next state at the query's goal.
     """
 
     gamma: float = 0.9
@@ -153,9 +162,13 @@ class TrainConfig:
     target_expectile: float = 0.9  # OGBench's GCIVL/GCIQL expectile
     value_init: float = 0.0
     relabel_every: int = 0
+    bootstrap_goal: str = "neighbour"
 
     def __post_init__(self) -> None:
         _counts(self, "relabel_every", minimum=0)
+        _check(self.bootstrap_goal in BOOTSTRAP_GOALS,
+               f"TrainConfig.bootstrap_goal must be 'neighbour' (V(s'_j, g_j), the paper's) or 'row' "
+               f"(V(s'_j, g_i) at the row's goal), got {self.bootstrap_goal!r}")
         _check(self.target_max in ("set", "data", "expectile"),
                f"TrainConfig.target_max must be 'set' (Eq. 7 over the action set), 'data' (over "
                f"the neighbourhood's actions) or 'expectile' (an in-sample expectile of the "

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -44,6 +44,11 @@ class LazyPolicy:
     kernel: FitKernel | None = None  # distance-weighted local fits (None: the paper's least squares)
     # where the local model prefers no action: "zero" or "random" (NeighbourConfig.no_model_action)
     no_model_action: str = struct.field(pytree_node=False, default="zero")
+    # train.bootstrap_goal="row": the neighbours' next states [N, d_s], valued every step at the
+    # query's goal by value_apply(value_vars, s', g) (the trained V); `values` is then unused
+    next_states: jax.Array | None = None
+    value_vars: Any = None
+    value_apply: Callable | None = struct.field(pytree_node=False, default=None)
 
 
 def policy_index(data_s, data_g, *, k: int, radius_s: float, radius_g: float, growth: float,
@@ -78,6 +83,20 @@ def make_lazy_policy(value_fn: Callable, data: Transitions, *, gamma: float, act
                       no_model_action=no_model_action)
 
 
+def neighbour_values(policy: LazyPolicy, rows: jax.Array, g) -> jax.Array:
+    """The values ``[B, k]`` the local fit of the queries' neighbourhoods ``rows [B, k]``
+    regresses: the table ``y_j = r_j + gamma (1 - done_j) V(s'_j, g_j)``, or with
+    ``train.bootstrap_goal="row"`` ``V(s'_j, g)`` at the query's goal ``g`` (the query's own
+    reward and discount are the same for every neighbour and do not change ``beta``)."""
+    if policy.value_apply is None:
+        return policy.values[rows]
+    s2 = policy.next_states[rows]
+    gq = None if g is None else jnp.broadcast_to(g[:, None], rows.shape + g.shape[1:])
+    v = policy.value_apply(policy.value_vars, s2.reshape(-1, s2.shape[-1]),
+                           None if gq is None else gq.reshape(-1, *g.shape[1:]))
+    return v.reshape(rows.shape)
+
+
 def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):
     """Greedy actions (Eq. 9) for a batch of states ``s[B, d_s]``, goals ``g[B]`` /
     ``g[B, d_g]`` / ``None`` (as the dataset's).
@@ -97,7 +116,7 @@ def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):
     Returns ``(actions[B, n_a], beta[B, n_a], found[B])``.
     """
     x = s if policy.features is None else policy.features(s)
-    nb = query_policy(policy.index, key, x, g)
+    nb = query_policy(policy.index, key, x, None if policy.value_apply is not None else g)
     rows = jnp.maximum(nb.idx, 0)
     offsets = None if policy.states is None else neighbour_offsets(
         policy.states[rows], s, None if policy.goals is None else policy.goals[rows],
@@ -108,7 +127,8 @@ def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):
         weights = epanechnikov_weights(kn.x[rows], x, None if kn.goals is None else kn.goals[rows],
                                        None if kn.goals is None else g, nb.level,
                                        radius_s=kn.radius_s, radius_g=kn.radius_g, growth=kn.growth)
-    _, beta = fit_local_linear(policy.actions[rows], policy.values[rows], weights, offsets=offsets)
+    _, beta = fit_local_linear(policy.actions[rows], neighbour_values(policy, rows, g), weights,
+                               offsets=offsets)
     found = nb.level >= 0
     action = jnp.where(found[:, None], greedy_action(beta, policy.action_length, policy.action_set), 0.0)
     if policy.no_model_action == "random":

@@ -167,9 +167,21 @@ def bootstrap_table(v: ValueFn, data: Transitions, gamma, batch_size=65536,
     return bootstrap_values(data.r, data.done, v_next, gamma)
 
 
+def row_goal_values(v: ValueFn, data: Transitions, rows, nb, gamma):
+    """``y [B, k]`` with ``train.bootstrap_goal="row"``: each neighbour's next state valued at
+    the row's goal with the row's reward, ``y_ij = r_i + gamma (1 - done_i) V(s'_j, g_i)`` for
+    the rows ``rows [B]`` and their neighbours ``nb [B, k]`` (Eq. 6's bracket where the reward
+    and termination depend on the state and goal alone)."""
+    s2 = data.s_next[nb]
+    g = None if data.g is None else jnp.broadcast_to(data.g[rows][:, None], nb.shape + data.g.shape[1:])
+    flat = v(s2.reshape(-1, s2.shape[-1]), None if g is None else g.reshape(-1, *data.g.shape[1:]))
+    return bootstrap_values(data.r[rows][:, None], data.done[rows][:, None], flat.reshape(nb.shape), gamma)
+
+
 def local_fits(v: ValueFn, data: Transitions, neighbours_idx, *, gamma, projection=None,
                batch_size=65536, mesh: Mesh | None = None, state_offsets: bool = False,
-               goal_offsets: bool = False, weights=None, in_sample: bool = False):
+               goal_offsets: bool = False, weights=None, in_sample: bool = False,
+               row_goal: bool = False):
     """``(alpha [N], beta [N, n_a], y_nb [N, k])``: Eq. (5)-(6) for every transition's
     neighbourhood with ``y = r + gamma (1 - done) v(s', g)``; ``y_nb = y[neighbours_idx]``
     (``in_sample=True``: instead each neighbour's value moved to the row's state and goal by
@@ -179,6 +191,10 @@ def local_fits(v: ValueFn, data: Transitions, neighbours_idx, *, gamma, projecti
     ``state_offsets``): also ``g_j - g_i`` (:func:`lazyq_jax.local_model.neighbour_offsets`).
     ``weights [N, k]``: weighted least squares (e.g.
     :func:`lazyq_jax.local_model.epanechnikov_weights`); not with a ``projection``.
+    ``row_goal`` (``train.bootstrap_goal="row"``): ``y`` of each neighbourhood at the row's
+    goal and with the row's reward (:func:`row_goal_values`: ``k`` evaluations of ``v`` a
+    row, in chunks of ``batch_size // k`` rows), not the table of Eq. (6) at the
+    neighbours' own goals; not with goal offsets (the goal is the row's for every neighbour).
 
     The fits run in chunks of ``batch_size`` rows (:func:`map_rows`): the neighbourhoods'
     ``[B, k, ...]`` arrays exist for one chunk at a time, so memory grows with ``N`` only
@@ -189,14 +205,17 @@ def local_fits(v: ValueFn, data: Transitions, neighbours_idx, *, gamma, projecti
     idx = jnp.asarray(neighbours_idx)
     if weights is not None and projection is not None:
         raise ValueError("local_fits takes weights or a projection (precomputed without weights), not both")
+    if row_goal and goal_offsets:
+        raise ValueError("row_goal values every neighbour at the row's goal: there are no goal "
+                         "offsets to fit (use local_model 'action+state')")
     if weights is not None:
         weights = jnp.asarray(weights, jnp.float32)
-    y = bootstrap_table(v, data, gamma, batch_size, mesh)
+    y = None if row_goal else bootstrap_table(v, data, gamma, batch_size, mesh)
     g = data.g if state_offsets and goal_offsets else None
 
     def fit(rows):  # the fits of one chunk of rows: [B, k, ...] arrays live only here
         nb = idx[rows]
-        y_nb = y[nb]
+        y_nb = row_goal_values(v, data, rows, nb, gamma) if row_goal else y[nb]
         w = None if weights is None else weights[rows]
         if state_offsets:
             offsets = neighbour_offsets(data.s[nb], data.s[rows], None if g is None else g[nb],
@@ -209,4 +228,5 @@ def local_fits(v: ValueFn, data: Transitions, neighbours_idx, *, gamma, projecti
             alpha, beta = apply_projection(projection[rows], y_nb)
         return alpha, beta, y_nb
 
-    return map_rows(fit, idx.shape[0], batch_size, mesh)
+    rows_a_chunk = max(1, batch_size // idx.shape[1]) if row_goal else batch_size
+    return map_rows(fit, idx.shape[0], rows_a_chunk, mesh)

@@ -138,6 +138,9 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
         raise ValueError(f"goal must be 'angle', None or a vector dimension >= 1, got {goal!r}")
     if goal_offsets and not state_offsets:
         raise ValueError("goal_offsets=True needs state_offsets=True (local_model 'action+state+goal')")
+    if goal_offsets and config.bootstrap_goal == "row":
+        raise ValueError("train.bootstrap_goal='row' values every neighbour at the row's goal: there are "
+                         "no goal offsets to fit; use neighbours.local_model='action+state'")
     if action_set not in ("ball", "box"):
         raise ValueError(f"action_set must be 'ball' or 'box', got {action_set!r}")
     scale = np.asarray(state_scale, np.float64)
@@ -198,7 +201,8 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
         return local_fits(value_fn(state), data, idx, gamma=config.gamma,
                           batch_size=config.target_batch_size, mesh=mesh, state_offsets=state_offsets,
                           goal_offsets=goal_offsets, weights=weights,
-                          in_sample=config.target_max == "expectile")
+                          in_sample=config.target_max == "expectile",
+                          row_goal=config.bootstrap_goal == "row")
 
     def loss_fn(params, batch_stats, s, g, y):
         v, updates = train_network.apply({"params": params, "batch_stats": batch_stats}, s, g,

@@ -54,6 +54,10 @@ class Problem:
         grid for 2-D states with angle goals (so that seeds share compiled searches).
       features: ``phi(s [..., d_s]) -> [..., m]``, where lazy Q measures the state
         distance of its neighbourhoods (None: the state itself).
+      state_goal_reward: the reward and termination of a transition are functions of its
+        state and goal alone (OGBench's relabelled goal reaching: -1 until the goal is the
+        state), so a neighbour's next state may be valued at another row's goal with that
+        row's reward (lazy Q's ``train.bootstrap_goal="row"``).
     """
 
     action_length: float = 0.1
@@ -62,6 +66,7 @@ class Problem:
     probes: tuple | None = None
     search_bounds: tuple[float, float, float, float] | None = None
     features: Callable | None = None
+    state_goal_reward: bool = False
 
     def __post_init__(self) -> None:
         c = self.action_length

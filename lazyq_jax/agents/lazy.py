@@ -9,7 +9,8 @@ action value model Q(s, a, g) ~ alpha + beta.a (Eq. 4), behind the agent interfa
   OGBench's value goals from its trajectory, and new neighbourhoods, every that many cycles).
 * ``run_block``: one cycle of fitted value iteration (:func:`lazyq_jax.train.make_train`):
   targets of Eq. (11) (or Eq. 13 with ``train.double_dqn``; ``train.target_max`` moves
-  Eq. 7's maximum to the neighbours' actions or an in-sample expectile) from the network
+  Eq. 7's maximum to the neighbours' actions or an in-sample expectile;
+  ``train.bootstrap_goal="row"`` values the neighbours at the row's goal) from the network
   frozen at the start of the cycle, then ``train.epochs`` epochs of Adam on Eq. (10).
 * ``act``: Eq. (9), the greedy action of the local fit over the dataset
   (:func:`lazyq_jax.policy.lazy_policy`); where the local model prefers no action (no
@@ -29,7 +30,7 @@ from jax.sharding import Mesh
 
 from lazyq_jax.agents.base import Agent, Problem
 from lazyq_jax.agents.goals import fresh_goals, uses_trajectories
-from lazyq_jax.config import NeighbourConfig, TrainConfig
+from lazyq_jax.config import ConfigError, NeighbourConfig, TrainConfig
 from lazyq_jax.keys import purpose_key
 from lazyq_jax.local_model import epanechnikov_weights
 from lazyq_jax.neighbours import build_index, find_neighbours, is_grid_space, search_all
@@ -79,11 +80,25 @@ class LazyAgent(Agent):
         if not isinstance(config, LazyConfig):
             raise TypeError(f"lazy Q needs a LazyConfig (or None), got {type(config).__name__}")
         self.config, self.problem, self.mesh = config, problem, mesh
+        self.row_goal = config.train.bootstrap_goal == "row"
+        if self.row_goal and not problem.state_goal_reward:
+            raise ConfigError("train.bootstrap_goal='row' values a neighbour's next state at the row's "
+                              "goal with the row's reward, which is exact only where the reward depends "
+                              "on the state and goal alone; this task's does not "
+                              "(Problem.state_goal_reward=False): use bootstrap_goal='neighbour'")
+        if self.row_goal and config.neighbours.local_model == "action+state+goal":
+            raise ConfigError("train.bootstrap_goal='row' values every neighbour at the row's goal: there "
+                              "are no goal offsets to fit; use neighbours.local_model='action+state'")
         self.blocks = config.train.cycles
+        # The trained network's inference forward pass, which the policy calls per step with
+        # bootstrap_goal="row" (one object, so that the policy's static field compares equal).
+        self.value_apply = None
         self.trainer = make_train(config.train, problem.action_length, action_set=problem.action_set,
                                   state_offsets=config.neighbours.local_model != "action",
                                   goal_offsets=config.neighbours.local_model == "action+state+goal",
                                   state_scale=problem.state_scale, probes=problem.probes, mesh=mesh)
+        if self.row_goal:
+            self.value_apply = partial(self.trainer.network.apply, train=False)
 
     # --- training
     def init(self, key, data: Transitions):
@@ -135,7 +150,7 @@ class LazyAgent(Agent):
         if self.config.train.resample_neighbours and block > 0:
             key = jax.random.fold_in(purpose_key(seed, "resample"), block)
         goals = self.goals_for(seed, data, n_valid, block)
-        data_g = goals.get("g", data.g)
+        data_g = None if self.row_goal else goals.get("g", data.g)  # row goals: state space only
         nc, n = self.config.neighbours, int(n_valid)
         x = self.search_space(data.s)
         if is_grid_space(x, data_g):
@@ -198,10 +213,13 @@ class LazyAgent(Agent):
     def policies(self, states, data: Transitions, n_valid) -> LazyPolicy:
         """Each seed's policy over its own dataset (rows ``< n_valid``): the neighbour index
         (stacked over the seeds: one layout and the largest capacities), and the
-        bootstrapped values ``r + gamma (1 - done) V(s', g)`` of its trained V."""
+        bootstrapped values ``r + gamma (1 - done) V(s', g)`` of its trained V (with
+        ``train.bootstrap_goal="row"`` instead the index in state space, the next states and
+        the trained network, which each step values at the query's goal)."""
         nc, n_seeds = self.config.neighbours, int(np.shape(n_valid)[0])
         xs = [self.search_space(data.s[i]) for i in range(n_seeds)]
-        indices = [policy_index(xs[i], None if data.g is None else np.asarray(data.g[i]),
+        search_g = None if self.row_goal else data.g
+        indices = [policy_index(xs[i], None if search_g is None else np.asarray(search_g[i]),
                                 k=nc.k, radius_s=nc.radius_s, radius_g=nc.radius_g, growth=nc.growth,
                                 max_level=nc.max_level, n_valid=int(n_valid[i]))
                    for i in range(n_seeds)]
@@ -211,8 +229,14 @@ class LazyAgent(Agent):
         index = stack_policy_indices(indices, like=getattr(self, "_policy_like", None))
         self._policy_like = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), index)
         gamma = self.config.train.gamma
-        values = over_seeds(lambda st, d: bootstrap_table(self.trainer.value_fn(st), d, gamma),
-                            n_seeds)(states, data)
+        value_vars = next_states = None
+        if self.row_goal:  # each step values the neighbours' next states at the query's goal
+            values = jnp.zeros(np.shape(data.r), jnp.float32)
+            value_vars = {"params": states.params, "batch_stats": states.batch_stats}
+            next_states = data.s_next
+        else:
+            values = over_seeds(lambda st, d: bootstrap_table(self.trainer.value_fn(st), d, gamma),
+                                n_seeds)(states, data)
         length = jnp.full(n_seeds, self.problem.action_length, jnp.float32)
         model = self.config.neighbours.local_model
         states = data.s if model != "action" else None
@@ -220,9 +244,10 @@ class LazyAgent(Agent):
         kernel = None
         if nc.fit_weights != "uniform":
             x = jnp.stack([jnp.asarray(x, jnp.float32) for x in xs])
-            kernel = FitKernel(x, data.g, nc.radius_s, nc.radius_g, nc.growth)
+            kernel = FitKernel(x, search_g, nc.radius_s, nc.radius_g, nc.growth)
         return LazyPolicy(index, data.a, values, length, self.problem.action_set, self.problem.features,
-                          states, goals, kernel, nc.no_model_action)
+                          states, goals, kernel, nc.no_model_action, next_states, value_vars,
+                          self.value_apply)
 
     def act(self, policy: LazyPolicy):
         return lambda key, s, g: lazy_policy(policy, key, s, g)[0]

@@ -157,7 +157,7 @@ class PointMazeTask(Task):
         check(config)
 
     def problem(self, config: Config) -> Problem:
-        return Problem(action_length=1.0, action_set="box", state_scale=1.0)
+        return Problem(action_length=1.0, action_set="box", state_scale=1.0, state_goal_reward=True)
 
     def method_defaults(self, name: str) -> dict:
         """OGBench's published network and batch sizes (3 x 512 hidden, batch 1024), for every
