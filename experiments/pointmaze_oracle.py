@@ -300,11 +300,7 @@ def radius_probe(args, agent, data, seed, n, s, g, s2, geo, gamma, config, table
             y_nb = jnp.asarray(tables[name])[ii]
             _, target, _ = run_target(config.train, a_nb, y_nb, offsets, c, action_set)
             err = np.asarray(target, np.float64) - ref
-            parts = [("all", np.ones_like(wall)), ("wall pairs", wall)]
-            parts += [(f"wall pairs, state {lo}-{hi} from a wall", wall & (clear >= lo) & (clear < hi))
-                      for lo, hi in itertools.pairwise(CLEARANCE)]
-            entry[name] = {part: {"rows": int(m.sum()), "mean_error": float(err[m].mean())}
-                           for part, m in parts if m.any()}
+            entry[name] = errors_by_wall_distance(err, wall, clear)
         print(f"{key} ({time.perf_counter() - t:.0f} s): {json.dumps(entry)}", flush=True)
     if args.probe_query_goal:
         for radius_s in args.probe_radius:
@@ -313,6 +309,15 @@ def radius_probe(args, agent, data, seed, n, s, g, s2, geo, gamma, config, table
                 c, action_set)
             print(f"query goal, radius_s={radius_s}: {json.dumps(entry)}", flush=True)
     results["radius_probe"] = out
+
+
+def errors_by_wall_distance(err, wall, clear) -> dict:
+    """The mean of ``err`` over all scored rows, the wall pairs, and the wall pairs by the
+    state's distance from a wall (``CLEARANCE``'s bins), with the rows in each."""
+    parts = [("all", np.ones_like(wall)), ("wall pairs", wall)]
+    parts += [(f"wall pairs, state {lo}-{hi} from a wall", wall & (clear >= lo) & (clear < hi))
+              for lo, hi in itertools.pairwise(CLEARANCE)]
+    return {part: {"rows": int(m.sum()), "mean_error": float(err[m].mean())} for part, m in parts if m.any()}
 
 
 def query_goal_backup(seed, s, g, s2, rows, wall, clear, v_star, v_line, geo, gamma, a_all, radius_s,
@@ -336,11 +341,7 @@ def query_goal_backup(seed, s, g, s2, rows, wall, clear, v_star, v_line, geo, ga
         alpha, beta, _ = fit_with_offsets(a_all[ii], y_nb, offsets=offsets)
         target, _ = lazy_target(alpha, beta, y_nb, c, True, action_set)
         err = np.asarray(target, np.float64) - ref
-        parts = [("all", np.ones_like(wall)), ("wall pairs", wall)]
-        parts += [(f"wall pairs, state {lo}-{hi} from a wall", wall & (clear >= lo) & (clear < hi))
-                  for lo, hi in itertools.pairwise(CLEARANCE)]
-        entry[name] = {part: {"rows": int(m.sum()), "mean_error": float(err[m].mean())}
-                       for part, m in parts if m.any()}
+        entry[name] = errors_by_wall_distance(err, wall, clear)
     entry["seconds"] = round(time.perf_counter() - t, 1)
     return entry
 
