@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Any, Callable
 
 import jax
@@ -12,7 +13,7 @@ from lazyq_jax.config import NO_MODEL_ACTIONS
 from lazyq_jax.local_model import (boundary_action, epanechnikov_weights, fit_local_linear, greedy_action,
                                    neighbour_offsets)
 from lazyq_jax.neighbours.query import PolicyIndex, build_policy_index, query_policy
-from lazyq_jax.targets import bootstrap_table
+from lazyq_jax.targets import bootstrap_table, values_at_goals
 from lazyq_jax.types import Transitions
 
 
@@ -90,11 +91,7 @@ def neighbour_values(policy: LazyPolicy, rows: jax.Array, g) -> jax.Array:
     reward and discount are the same for every neighbour and do not change ``beta``)."""
     if policy.value_apply is None:
         return policy.values[rows]
-    s2 = policy.next_states[rows]
-    gq = None if g is None else jnp.broadcast_to(g[:, None], rows.shape + g.shape[1:])
-    v = policy.value_apply(policy.value_vars, s2.reshape(-1, s2.shape[-1]),
-                           None if gq is None else gq.reshape(-1, *g.shape[1:]))
-    return v.reshape(rows.shape)
+    return values_at_goals(partial(policy.value_apply, policy.value_vars), policy.next_states[rows], g)
 
 
 def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):

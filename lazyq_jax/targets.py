@@ -167,15 +167,21 @@ def bootstrap_table(v: ValueFn, data: Transitions, gamma, batch_size=65536,
     return bootstrap_values(data.r, data.done, v_next, gamma)
 
 
+def values_at_goals(v: ValueFn, s_nb, g):
+    """``V(s_nb[b, j], g[b])`` ``[B, k]``: every neighbour's state ``s_nb [B, k, d_s]`` valued
+    at its centre's goal ``g`` (``[B]`` angles, ``[B, d_g]`` or None), in one call of ``v``."""
+    shape = s_nb.shape[:2]
+    gg = None if g is None else jnp.broadcast_to(g[:, None], shape + g.shape[1:]).reshape(-1, *g.shape[1:])
+    return v(s_nb.reshape(-1, s_nb.shape[-1]), gg).reshape(shape)
+
+
 def row_goal_values(v: ValueFn, data: Transitions, rows, nb, gamma):
     """``y [B, k]`` with ``train.bootstrap_goal="row"``: each neighbour's next state valued at
     the row's goal with the row's reward, ``y_ij = r_i + gamma (1 - done_i) V(s'_j, g_i)`` for
     the rows ``rows [B]`` and their neighbours ``nb [B, k]`` (Eq. 6's bracket where the reward
     and termination depend on the state and goal alone)."""
-    s2 = data.s_next[nb]
-    g = None if data.g is None else jnp.broadcast_to(data.g[rows][:, None], nb.shape + data.g.shape[1:])
-    flat = v(s2.reshape(-1, s2.shape[-1]), None if g is None else g.reshape(-1, *data.g.shape[1:]))
-    return bootstrap_values(data.r[rows][:, None], data.done[rows][:, None], flat.reshape(nb.shape), gamma)
+    v_next = values_at_goals(v, data.s_next[nb], None if data.g is None else data.g[rows])
+    return bootstrap_values(data.r[rows][:, None], data.done[rows][:, None], v_next, gamma)
 
 
 def local_fits(v: ValueFn, data: Transitions, neighbours_idx, *, gamma, projection=None,

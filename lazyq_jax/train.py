@@ -38,7 +38,7 @@ import optax
 from flax import struct
 from jax.sharding import Mesh, PartitionSpec as P
 
-from lazyq_jax.config import TrainConfig
+from lazyq_jax.config import ConfigError, TrainConfig
 from lazyq_jax.local_model import safe_norm
 from lazyq_jax.networks import ValueNetwork, goal_kind
 from lazyq_jax.parallel import AXIS, check_divisible, mesh_size
@@ -139,8 +139,8 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
     if goal_offsets and not state_offsets:
         raise ValueError("goal_offsets=True needs state_offsets=True (local_model 'action+state+goal')")
     if goal_offsets and config.bootstrap_goal == "row":
-        raise ValueError("train.bootstrap_goal='row' values every neighbour at the row's goal: there are "
-                         "no goal offsets to fit; use neighbours.local_model='action+state'")
+        raise ConfigError("train.bootstrap_goal='row' values every neighbour at the row's goal: there are "
+                          "no goal offsets to fit; use neighbours.local_model='action+state'")
     if action_set not in ("ball", "box"):
         raise ValueError(f"action_set must be 'ball' or 'box', got {action_set!r}")
     scale = np.asarray(state_scale, np.float64)

@@ -86,19 +86,14 @@ class LazyAgent(Agent):
                               "goal with the row's reward, which is exact only where the reward depends "
                               "on the state and goal alone; this task's does not "
                               "(Problem.state_goal_reward=False): use bootstrap_goal='neighbour'")
-        if self.row_goal and config.neighbours.local_model == "action+state+goal":
-            raise ConfigError("train.bootstrap_goal='row' values every neighbour at the row's goal: there "
-                              "are no goal offsets to fit; use neighbours.local_model='action+state'")
         self.blocks = config.train.cycles
-        # The trained network's inference forward pass, which the policy calls per step with
-        # bootstrap_goal="row" (one object, so that the policy's static field compares equal).
-        self.value_apply = None
         self.trainer = make_train(config.train, problem.action_length, action_set=problem.action_set,
                                   state_offsets=config.neighbours.local_model != "action",
                                   goal_offsets=config.neighbours.local_model == "action+state+goal",
                                   state_scale=problem.state_scale, probes=problem.probes, mesh=mesh)
-        if self.row_goal:
-            self.value_apply = partial(self.trainer.network.apply, train=False)
+        # The trained network's inference forward pass, which the policy calls per step with
+        # bootstrap_goal="row" (one object, so that the policy's static field compares equal).
+        self.value_apply = partial(self.trainer.network.apply, train=False) if self.row_goal else None
 
     # --- training
     def init(self, key, data: Transitions):
