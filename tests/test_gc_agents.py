@@ -284,6 +284,25 @@ def test_target_follows_the_online_network_before_the_step(name, target):
     assert not zero_tree(jax.tree.map(lambda a, b: a - b, new["params"], params))
 
 
+def test_gcivl_hard_target_copies_the_online_network_before_the_loss():
+    """``target_period = 3``: steps 0 and 3 copy the online value network into the target
+    before their loss (lazy Q's cycles), steps 1 and 4 keep the target as it is."""
+    agent, params, tgt, b = models("gcivl", SETS[0], target_period=3)
+    model = {"params": params, "target_value": tgt, "opt": agent.optimizer.init(params)}
+    update = jax.jit(agent.update)
+    for step, copied in ((0, True), (1, False), (3, True), (4, False)):
+        new, metrics = update(model, b, jax.random.PRNGKey(0), jnp.int32(step))
+        want = params["value"] if copied else tgt
+        for got, expected in zip(jax.tree.leaves(new["target_value"]), jax.tree.leaves(want),
+                                 strict=True):
+            np.testing.assert_array_equal(got, expected)
+        # the step's value loss is the one with that target (the copy came first)
+        _, info = agent.loss(params, want, b)
+        np.testing.assert_allclose(metrics["value_loss"], info["value_loss"], rtol=1e-5)
+        _, other = agent.loss(params, tgt if copied else params["value"], b)
+        assert not np.isclose(metrics["value_loss"], other["value_loss"], rtol=1e-3)
+
+
 # ----------------------------------------------------------------------------- expectile
 
 
@@ -426,6 +445,7 @@ def test_defaults_are_ogbenchs():
     (gcivl.GCIVLConfig, "alpha", math.inf), (gcivl.GCIVLConfig, "tau", 0.0),
     (gcivl.GCIVLConfig, "tau", 1.5), (gcivl.GCIVLConfig, "max_weight", 0.0),
     (gcivl.GCIVLConfig, "layer_norm", "yes"), (gcivl.GCIVLConfig, "gamma", 1.0),
+    (gcivl.GCIVLConfig, "target_period", -1), (gcivl.GCIVLConfig, "target_period", 2.5),
     (gciql.GCIQLConfig, "expectile", -0.1), (gciql.GCIQLConfig, "alpha", -0.003),
     (gciql.GCIQLConfig, "tau", -1.0), (gciql.GCIQLConfig, "layer_norm", 1),
     (gciql.GCIQLConfig, "alpha", float("nan")),

@@ -28,7 +28,11 @@ Losses, per step on one minibatch, summed and minimised by one Adam (``lr`` 3e-4
 * target (``target_update``): ``V^t <- tau V + (1 - tau) V^t`` with ``tau`` 0.005,
   where ``V`` are the online parameters *before* this step's gradient update (OGBench
   reads them from the agent being updated, ``self.network.params``), and ``V^t = V`` at
-  initialisation.
+  initialisation.  Not OGBench's, for ablations towards lazy Q's fitted value iteration
+  (``docs/pointmaze.md``): ``target_period = P > 0`` replaces the averaging by a hard
+  copy ``V^t <- V`` before the loss of every step ``i`` with ``i % P == 0``, so steps
+  ``[cP, (c + 1)P)`` regress on targets of the parameters at step ``cP``, as lazy Q's
+  cycles of §V-A-4 do.
 
 Networks (:mod:`lazyq_jax.agents.gcbc`): values ``GCValue(ensemble=True)``: OGBench's
 MLP, ``depth - 1`` hidden layers of ``width`` (Dense, GELU, LayerNorm if
@@ -70,6 +74,7 @@ from lazyq_jax.agents.common import (
     BaselineConfig,
     apply_ensemble,
     check,
+    check_int,
     check_range,
     init_ensemble,
     log_likelihood,
@@ -77,6 +82,7 @@ from lazyq_jax.agents.common import (
     observe,
     polyak,
     project,
+    select,
 )
 from lazyq_jax.agents.gcbc import actor_mean, actor_net, actor_stats, value_net
 from lazyq_jax.agents.goals import check_goal_source, minibatches
@@ -108,7 +114,8 @@ class GCIVLConfig(BaselineConfig):
     ``goals``: where the goals of a minibatch come from: ``"auto"`` (default) OGBench's
     fresh value and actor goals from the trajectories when the data have them
     (``Transitions.traj_last``, :mod:`lazyq_jax.agents.goals`), else the rows' own goals;
-    ``"trajectories"`` (required) or ``"rows"``."""
+    ``"trajectories"`` (required) or ``"rows"``.  ``target_period``: 0 (OGBench's) the
+    Polyak target, ``P > 0`` a hard copy every ``P`` steps (the module docstring)."""
 
     batch_size: int = 1024
     learning_rate: float = 3e-4
@@ -121,10 +128,12 @@ class GCIVLConfig(BaselineConfig):
     max_weight: float = 100.0
     layer_norm: bool = True
     goals: str = "auto"
+    target_period: int = 0
 
     def __post_init__(self) -> None:
         super().__post_init__()
         check_range(self, "tau", 0.0, 1.0, lo_open=True)
+        check_int(self, "target_period", 0)
         check_range(self, "expectile", 0.0, 1.0, lo_open=True, hi_open=True)
         check_range(self, "alpha", 0.0, math.inf)
         check_range(self, "max_weight", 0.0, math.inf, lo_open=True)
@@ -197,12 +206,16 @@ class GCIVL(Baseline):
     def update(self, model, batch, key, step):
         """One Adam step; ``batch``: rows, or ``(value rows, actor rows)`` (:meth:`batch`)."""
         pair = (batch, batch) if isinstance(batch, Transitions) else batch
-        grads, metrics = jax.grad(self.loss, has_aux=True)(model["params"],
-                                                           model["target_value"], *pair)
+        period = self.config.target_period
+        target = model["target_value"]
+        if period > 0:  # a hard copy before this step's loss (lazy Q's cycles)
+            target = select(step % period == 0, model["params"]["value"], target)
+        grads, metrics = jax.grad(self.loss, has_aux=True)(model["params"], target, *pair)
         updates, opt = self.optimizer.update(grads, model["opt"], model["params"])
         params = optax.apply_updates(model["params"], updates)
-        # OGBench's target_update: the online parameters before this step's update
-        target = polyak(model["target_value"], model["params"]["value"], self.config.tau)
+        if period == 0:
+            # OGBench's target_update: the online parameters before this step's update
+            target = polyak(target, model["params"]["value"], self.config.tau)
         return {"params": params, "target_value": target, "opt": opt}, metrics
 
     def actions(self, model, s, g):
