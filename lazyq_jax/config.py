@@ -129,6 +129,15 @@ class TrainConfig:
     ``target_expectile``-expectile of the neighbours' values moved to the row's state and goal
     by the local model's offset terms (:func:`lazyq_jax.targets.in_sample_target`: in-sample,
     as IQL's and GCIVL's expectile, never above the largest of them); the policy stays Eq. (9).
+    ``"next"`` is an ablation without the lazy model in the value iteration: each row's own
+    one-step target ``r_i + gamma (1 - done_i) V(s'_i, g_i)``, no neighbourhood and no maximum
+    (with ``loss_expectile = 0.5`` the data's own policy is evaluated; with ``0.9`` the
+    expectile regression gives GCIVL's value loss, Park et al. 2024, in lazy Q's network and
+    cycles); the neighbourhoods then serve the policy (Eq. 9) only.
+    ``loss_expectile``: 0.5 (default) is Eq. (10)'s squared error; ``tau != 0.5`` weights each
+    row's squared error by ``tau`` where the target is at or above the value, ``1 - tau`` below
+    (IQL's expectile regression, Kostrikov et al. 2022: V tends to the targets'
+    ``tau``-expectile).
     ``value_init``: where V starts (the last layer's initial bias; 0, the paper's, by
     default).  ``r_min / (1 - gamma)`` is a pessimistic start: V rises from below (on the
     maze it still ends above V* at the pairs across walls: ``docs/pointmaze.md``).
@@ -160,6 +169,7 @@ class TrainConfig:
     target_batch_size: int = 65536
     target_max: str = "set"
     target_expectile: float = 0.9  # OGBench's GCIVL/GCIQL expectile
+    loss_expectile: float = 0.5  # 0.5: Eq. (10)'s squared error
     value_init: float = 0.0
     relabel_every: int = 0
     bootstrap_goal: str = "neighbour"
@@ -169,10 +179,14 @@ class TrainConfig:
         _check(self.bootstrap_goal in BOOTSTRAP_GOALS,
                f"TrainConfig.bootstrap_goal must be 'neighbour' (V(s'_j, g_j), the paper's) or 'row' "
                f"(V(s'_j, g_i) at the row's goal), got {self.bootstrap_goal!r}")
-        _check(self.target_max in ("set", "data", "expectile"),
+        _check(self.target_max in ("set", "data", "expectile", "next"),
                f"TrainConfig.target_max must be 'set' (Eq. 7 over the action set), 'data' (over "
-               f"the neighbourhood's actions) or 'expectile' (an in-sample expectile of the "
-               f"neighbours' values), got {self.target_max!r}")
+               f"the neighbourhood's actions), 'expectile' (an in-sample expectile of the "
+               f"neighbours' values) or 'next' (each row's own next state, no lazy model), "
+               f"got {self.target_max!r}")
+        _check(not (self.target_max == "next" and self.bootstrap_goal != "neighbour"),
+               "TrainConfig: target_max='next' uses no neighbours in the targets; bootstrap_goal "
+               "must stay 'neighbour'")
         _check(not (self.double_dqn and self.target_max != "set"),
                "TrainConfig: double_dqn picks the action set's maximiser (Eq. 13); use it with "
                "target_max='set'")
@@ -180,6 +194,10 @@ class TrainConfig:
                and 0.0 < self.target_expectile < 1.0,
                f"TrainConfig.target_expectile must lie strictly between 0 and 1 (0.5: the mean, "
                f"near 1: the maximum), got {self.target_expectile!r}")
+        _check(isinstance(self.loss_expectile, (int, float)) and not isinstance(self.loss_expectile, bool)
+               and 0.0 < self.loss_expectile < 1.0,
+               f"TrainConfig.loss_expectile must lie strictly between 0 and 1 (0.5: Eq. 10's "
+               f"squared error), got {self.loss_expectile!r}")
         _check(0.0 <= self.gamma < 1.0, f"TrainConfig.gamma must lie in [0, 1), got {self.gamma!r}")
         _counts(self, "cycles", "epochs", "batch_size", "width", "target_batch_size")
         _check(_is_int(self.depth) and self.depth >= 2,

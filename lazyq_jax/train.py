@@ -42,7 +42,8 @@ from lazyq_jax.config import ConfigError, TrainConfig
 from lazyq_jax.local_model import safe_norm
 from lazyq_jax.networks import ValueNetwork, goal_kind
 from lazyq_jax.parallel import AXIS, check_divisible, mesh_size
-from lazyq_jax.targets import double_dqn_target, in_sample_target, lazy_target, local_fits
+from lazyq_jax.targets import (bootstrap_table, double_dqn_target, in_sample_target, lazy_target,
+                               local_fits)
 from lazyq_jax.types import Transitions
 
 
@@ -207,7 +208,11 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
     def loss_fn(params, batch_stats, s, g, y):
         v, updates = train_network.apply({"params": params, "batch_stats": batch_stats}, s, g,
                                          train=True, mutable=["batch_stats"])
-        return mean_over_mesh(jnp.mean((v - y) ** 2)), updates["batch_stats"]
+        squared = (v - y) ** 2
+        if config.loss_expectile != 0.5:  # expectile regression (IQL's), else Eq. (10)
+            tau = config.loss_expectile
+            squared = jnp.where(y >= v, tau, 1.0 - tau) * squared
+        return mean_over_mesh(jnp.mean(squared)), updates["batch_stats"]
 
     def mean_over_mesh(x):
         return x if mesh is None else jax.lax.pmean(x, AXIS)
@@ -262,12 +267,17 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
         valid = jnp.arange(data.r.shape[0]) < n_valid
         key, k_epochs = jax.random.split(state.key)
         # The target network: the parameters frozen at the start of the cycle (Eq. 11-12).
-        alpha, beta, y_nb = fits(state, data, idx, weights)
-        if config.target_max == "expectile":  # y_nb: the neighbours' values moved to the row
-            dqn = in_sample_target(y_nb, config.target_expectile, weights)
+        if config.target_max == "next":  # the ablation without the lazy model: own s'
+            y = bootstrap_table(value_fn(state), data, config.gamma, config.target_batch_size, mesh)
+            alpha = beta = y_nb = None
+            dqn = (y, jnp.zeros(y.shape, bool))
         else:
-            actions = data.a[idx] if config.target_max == "data" else None
-            dqn = lazy_target(alpha, beta, y_nb, action_length, config.clip, action_set, actions)
+            alpha, beta, y_nb = fits(state, data, idx, weights)
+            if config.target_max == "expectile":  # y_nb: the neighbours' values moved to the row
+                dqn = in_sample_target(y_nb, config.target_expectile, weights)
+            else:
+                actions = data.a[idx] if config.target_max == "data" else None
+                dqn = lazy_target(alpha, beta, y_nb, action_length, config.clip, action_set, actions)
 
         def one_epoch(state, xs):
             e, k = xs
@@ -294,8 +304,9 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
             "target_mean": y_mean[-1],
             "target_std": y_std[-1],
             "clip_fraction": clip_frac[-1],
-            "beta_norm_mean": masked_mean(safe_norm(beta), valid),
         }
+        if beta is not None:
+            metrics["beta_norm_mean"] = masked_mean(safe_norm(beta), valid)
         if probes is not None:
             metrics["probe_values"] = value_fn(state)(*probes)
         return state, metrics
