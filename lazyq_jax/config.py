@@ -134,6 +134,8 @@ class TrainConfig:
     (with ``loss_expectile = 0.5`` the data's own policy is evaluated; with ``0.9`` the
     expectile regression gives GCIVL's value loss, Park et al. 2024, in lazy Q's network and
     cycles); the neighbourhoods then serve the policy (Eq. 9) only.
+    ``norm``: ``"batch"`` (the paper's §V-A-4 network: Dense, BatchNorm, ReLU) or ``"layer"``
+    (an ablation: OGBench's MLP blocks, Dense, GELU, LayerNorm; ``docs/pointmaze.md``).
     ``loss_expectile``: 0.5 (default) is Eq. (10)'s squared error; ``tau != 0.5`` weights each
     row's squared error by ``tau`` where the target is at or above the value, ``1 - tau`` below
     (IQL's expectile regression, Kostrikov et al. 2022: V tends to the targets'
@@ -170,6 +172,7 @@ class TrainConfig:
     target_max: str = "set"
     target_expectile: float = 0.9  # OGBench's GCIVL/GCIQL expectile
     loss_expectile: float = 0.5  # 0.5: Eq. (10)'s squared error
+    norm: str = "batch"
     value_init: float = 0.0
     relabel_every: int = 0
     bootstrap_goal: str = "neighbour"
@@ -194,6 +197,9 @@ class TrainConfig:
                and 0.0 < self.target_expectile < 1.0,
                f"TrainConfig.target_expectile must lie strictly between 0 and 1 (0.5: the mean, "
                f"near 1: the maximum), got {self.target_expectile!r}")
+        _check(self.norm in ("batch", "layer"),
+               f"TrainConfig.norm must be 'batch' (the paper's BatchNorm network) or 'layer' "
+               f"(OGBench's LayerNorm blocks), got {self.norm!r}")
         _check(isinstance(self.loss_expectile, (int, float)) and not isinstance(self.loss_expectile, bool)
                and 0.0 < self.loss_expectile < 1.0,
                f"TrainConfig.loss_expectile must lie strictly between 0 and 1 (0.5: Eq. 10's "

@@ -50,6 +50,10 @@ class ValueNetwork(nn.Module):
     ``output_init``: the last Dense layer's initial bias, so ``V`` starts near it (a
     pessimistic start: ``TrainConfig.value_init``).
 
+    ``norm="layer"`` (``TrainConfig.norm``, an ablation) builds OGBench's MLP block instead
+    (Park et al. 2024, ``impls/utils/networks.py``): Dense with bias, GELU, LayerNorm; no
+    batch statistics, so training and inference compute the same function.
+
     ``axis_name``: inside ``shard_map`` over a batch split on that mesh axis, batch
     norm averages its statistics over all devices (synchronised batch norm: the
     same statistics as the whole batch on one device).  The parameters do not
@@ -61,11 +65,15 @@ class ValueNetwork(nn.Module):
     state_scale: float | tuple[float, ...] = 1.0
     axis_name: str | None = None
     output_init: float = 0.0
+    norm: str = "batch"
 
     @nn.compact
     def __call__(self, s: jax.Array, g: jax.Array | None = None, train: bool = False) -> jax.Array:
         x = encode(s, g, self.state_scale)
         for _ in range(self.depth - 1):
+            if self.norm == "layer":  # OGBench's block
+                x = nn.LayerNorm()(nn.gelu(nn.Dense(self.width)(x)))
+                continue
             x = nn.Dense(self.width, use_bias=False)(x)  # BN's bias replaces it
             x = nn.BatchNorm(use_running_average=not train, momentum=0.99,
                              axis_name=self.axis_name if train else None)(x)

@@ -148,6 +148,7 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
     if scale.ndim > 1 or not np.all(scale > 0):
         raise ValueError(f"state_scale must be a number > 0 or one per state dimension, got {state_scale!r}")
     network = ValueNetwork(width=config.width, depth=config.depth, output_init=config.value_init,
+                           norm=config.norm,
                            state_scale=float(scale) if scale.ndim == 0 else tuple(scale.tolist()))
     fixed = (state_dim, goal) if state_dim is not None and goal != "from data" else None
 
@@ -191,7 +192,7 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
         example_g = None if kind is None else jnp.zeros((1,) if kind == "angle" else (1, kind))
         variables = network.init(k_init, jnp.zeros((1, d_s)), example_g, train=False)
         params = variables["params"]
-        return TrainState(params=params, batch_stats=variables["batch_stats"],
+        return TrainState(params=params, batch_stats=variables.get("batch_stats", {}),
                           opt_state=optimizer.init(params), key=key, cycle=jnp.int32(0))
 
     def value_fn(state: TrainState) -> Callable:
@@ -212,7 +213,7 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
         if config.loss_expectile != 0.5:  # expectile regression (IQL's), else Eq. (10)
             tau = config.loss_expectile
             squared = jnp.where(y >= v, tau, 1.0 - tau) * squared
-        return mean_over_mesh(jnp.mean(squared)), updates["batch_stats"]
+        return mean_over_mesh(jnp.mean(squared)), updates.get("batch_stats", batch_stats)
 
     def mean_over_mesh(x):
         return x if mesh is None else jax.lax.pmean(x, AXIS)
