@@ -125,8 +125,8 @@ def run_target(train, a_nb, y_nb, offsets, action_length, action_set, clip=True)
 
 def fixed_point(args, agent, data, seed, n, s, g, geo, gamma, config, loaded, tables, results):
     """T V against V* (and the trained V) at sampled rows; see the module docstring.  For a
-    run with ``train.bootstrap_goal="row"`` only the trained V against V* (the T's here are
-    the tabulated backup's, at the neighbours' goals)."""
+    run with ``train.bootstrap_goal="row"`` or ``train.target_max="next"`` only the trained V
+    against V* (the T's here are the tabulated lazy backup's, not such a run's)."""
     rng = np.random.default_rng(0)
     rows, v_star, wall = scored_rows(rng, args.pairs, s, g, geo, gamma)
     v_rows_net = np.asarray(agent.value_fn(loaded.state())(jnp.asarray(s[rows]), jnp.asarray(g[rows])), np.float64)
@@ -135,8 +135,9 @@ def fixed_point(args, agent, data, seed, n, s, g, geo, gamma, config, loaded, ta
         part: {"mean": float(gap[m].mean()), "mean_abs": float(np.abs(gap[m]).mean())}
         for part, m in (("all", np.ones_like(wall)), ("wall pairs", wall))}
     print(f"trained V - V*: {json.dumps(results['fixed_point']['trained V - V*'])}", flush=True)
-    if config.train.bootstrap_goal == "row":
-        print("train.bootstrap_goal='row': the tabulated backup's T is not this run's; skipped", flush=True)
+    if config.train.bootstrap_goal == "row" or config.train.target_max == "next":
+        print("the tabulated lazy backup's T is not this run's (train.bootstrap_goal='row' or "
+              "target_max='next'); skipped", flush=True)
         return
     t = time.perf_counter()
     nb = agent.prepare(seed, data, n, 0)
