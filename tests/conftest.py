@@ -7,6 +7,7 @@ temporary directory): a program another process already compiled is read back, n
 compiled again.  It changes no result (the cache key is the whole program).
 """
 
+import json
 import os
 import subprocess
 import sys
@@ -18,7 +19,7 @@ import numpy as np
 import pytest
 
 from lazyq_jax.parallel import enable_compilation_cache
-from lazyq_jax.run import run
+from lazyq_jax.run import load_policy, run
 from lazyq_jax.config import Config, TrainConfig
 from lazyq_jax.tasks.push import FORGIVING_PUSH, CollectConfig, EvalConfig, PushConfig, PushEnv
 
@@ -56,6 +57,28 @@ def cli(*args, seconds: float = 900) -> subprocess.CompletedProcess:
     :func:`timeout` ``(seconds)``."""
     return subprocess.run([sys.executable, "-m", "lazyq_jax", *args], capture_output=True,
                           text=True, timeout=timeout(seconds), check=False)
+
+
+POINTMAZE_SMOKE = ["collect.episodes=12", "collect.episode_steps=61", "eval.episodes_per_task=2",
+                   "eval.max_steps=20", "train.cycles=2", "neighbours.k=8"]
+
+
+def pointmaze_round_trip(run_dir, *sets: str) -> None:
+    """The pointmaze task at smoke scale with lazy Q and the ``--set`` options ``sets``
+    through the CLI: trained, evaluated again to the same outcome, reloaded
+    (``load_policy``) and acting in the box."""
+    args = ["train", "--task", "pointmaze", "--preset", "smoke", "--run-dir", str(run_dir), "--no-progress"]
+    for a in [*POINTMAZE_SMOKE, *sets]:
+        args += ["--set", a]
+    out = cli(*args)
+    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
+    first = json.loads((run_dir / "results.json").read_text())["methods"]["lazy"]["per_seed"]
+    out = cli("evaluate", "--run-dir", str(run_dir), "--methods", "lazy", "--no-figures", "--no-progress")
+    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
+    assert json.loads((run_dir / "results.json").read_text())["methods"]["lazy"]["per_seed"] == first
+    act = load_policy(run_dir, "lazy")
+    a = act(jax.random.PRNGKey(0), jnp.zeros((3, 2)), jnp.full((3, 2), 4.0))
+    assert a.shape == (3, 2) and bool(jnp.all(jnp.abs(a) <= 1.0 + 1e-6))
 
 
 @pytest.fixture(scope="session")

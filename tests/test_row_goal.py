@@ -5,13 +5,12 @@ is linear in the state."""
 
 from __future__ import annotations
 
-import json
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import cli
+from conftest import pointmaze_round_trip
 
 from lazyq_jax import agents, tasks
 from lazyq_jax.agents.base import Problem
@@ -19,7 +18,6 @@ from lazyq_jax.config import ConfigError, NeighbourConfig, TrainConfig, override
 from lazyq_jax.local_model import RIDGE
 from lazyq_jax.neighbours.query import query_policy
 from lazyq_jax.policy import LazyPolicy, lazy_policy, policy_index
-from lazyq_jax.run import load_policy
 from lazyq_jax.targets import lazy_target, local_fits
 from lazyq_jax.train import make_train
 from lazyq_jax.types import Transitions
@@ -138,20 +136,7 @@ def test_row_goal_is_refused_where_it_is_not_exact():
 
 def test_row_goal_through_the_cli(tmp_path):
     """The whole task at smoke scale with row goals: trained, evaluated, reloaded, acting."""
-    run_dir = tmp_path / "row"
-    args = ["train", "--task", "pointmaze", "--preset", "smoke", "--run-dir", str(run_dir), "--no-progress"]
-    for a in ["collect.episodes=12", "collect.episode_steps=61", "eval.episodes_per_task=2",
-              "eval.max_steps=20", "train.cycles=2", "neighbours.k=8", "train.bootstrap_goal=row",
-              "neighbours.local_model=action+state"]:
-        args += ["--set", a]
-    out = cli(*args)
-    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
-    first = json.loads((run_dir / "results.json").read_text())["methods"]["lazy"]["per_seed"]
-    out = cli("evaluate", "--run-dir", str(run_dir), "--methods", "lazy", "--no-figures", "--no-progress")
-    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
-    assert json.loads((run_dir / "results.json").read_text())["methods"]["lazy"]["per_seed"] == first
-    act = load_policy(run_dir, "lazy")
-    a = act(jax.random.PRNGKey(0), jnp.zeros((3, 2)), jnp.full((3, 2), 4.0))
-    assert a.shape == (3, 2) and bool(jnp.all(jnp.abs(a) <= 1.0 + 1e-6))
+    pointmaze_round_trip(tmp_path / "row", "train.bootstrap_goal=row",
+                         "neighbours.local_model=action+state")
     cfg = override(tasks.preset("pointmaze", "smoke"), ["train.bootstrap_goal=row"])
     assert cfg.train.bootstrap_goal == "row"

@@ -4,16 +4,13 @@ expectile regression (``train.loss_expectile``) and OGBench's LayerNorm blocks
 (``train.norm="layer"``): against NumPy's backup, the closed-form expectile and a NumPy
 forward pass; the three together through the CLI."""
 
-import json
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import cli
+from conftest import pointmaze_round_trip
 from test_gc_agents import np_mlp
 
-from lazyq_jax import load_policy
 from lazyq_jax.config import ConfigError, TrainConfig
 from lazyq_jax.networks import ValueNetwork, encode
 from lazyq_jax.train import make_train
@@ -114,18 +111,5 @@ def test_layer_norm_network_is_ogbenchs_mlp():
 def test_the_ablations_through_the_cli(tmp_path):
     """The whole pointmaze task at smoke scale with all three: trained, checkpointed,
     evaluated again to the same outcome, reloaded and acting."""
-    run_dir = tmp_path / "ablation"
-    args = ["train", "--task", "pointmaze", "--preset", "smoke", "--run-dir", str(run_dir), "--no-progress"]
-    for a in ["collect.episodes=12", "collect.episode_steps=61", "eval.episodes_per_task=2",
-              "eval.max_steps=20", "train.cycles=2", "neighbours.k=8", "train.target_max=next",
-              "train.loss_expectile=0.9", "train.norm=layer"]:
-        args += ["--set", a]
-    out = cli(*args)
-    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
-    first = json.loads((run_dir / "results.json").read_text())["methods"]["lazy"]["per_seed"]
-    out = cli("evaluate", "--run-dir", str(run_dir), "--methods", "lazy", "--no-figures", "--no-progress")
-    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
-    assert json.loads((run_dir / "results.json").read_text())["methods"]["lazy"]["per_seed"] == first
-    act = load_policy(run_dir, "lazy")
-    a = act(jax.random.PRNGKey(0), jnp.zeros((3, 2)), jnp.full((3, 2), 4.0))
-    assert a.shape == (3, 2) and bool(jnp.all(jnp.abs(a) <= 1.0 + 1e-6))
+    pointmaze_round_trip(tmp_path / "ablation", "train.target_max=next", "train.loss_expectile=0.9",
+                         "train.norm=layer")
