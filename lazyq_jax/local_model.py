@@ -115,6 +115,15 @@ def fit_with_offsets(actions, values, weights=None, offsets=None):
     return alpha, coef[..., :n_a], moved
 
 
+def expectile_loss(adv: jax.Array, diff: jax.Array, expectile: float) -> jax.Array:
+    """OGBench's ``expectile_loss`` (GCIVL, GCIQL; IQL's expectile regression, Kostrikov et al.
+    2022): ``|tau - 1(adv < 0)| diff^2`` elementwise (the weight ``tau`` where ``adv >= 0``).
+    With ``adv = diff = x - v`` its mean over a sample ``x`` is minimised by the
+    ``tau``-expectile of ``x`` (:func:`expectile`)."""
+    weight = jnp.where(adv >= 0, expectile, 1.0 - expectile)
+    return weight * diff ** 2
+
+
 def expectile(values, tau: float, weights=None):
     """The ``tau``-expectile of ``values [..., k]`` over the last axis (with ``weights [..., k]``
     >= 0, not all 0): the ``m`` with ``tau sum_j w_j (y_j - m)_+ = (1 - tau) sum_j w_j (m - y_j)_+``

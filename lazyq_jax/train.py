@@ -39,7 +39,7 @@ from flax import struct
 from jax.sharding import Mesh, PartitionSpec as P
 
 from lazyq_jax.config import ConfigError, TrainConfig
-from lazyq_jax.local_model import safe_norm
+from lazyq_jax.local_model import expectile_loss, safe_norm
 from lazyq_jax.networks import ValueNetwork, goal_kind
 from lazyq_jax.parallel import AXIS, check_divisible, mesh_size
 from lazyq_jax.targets import (bootstrap_table, double_dqn_target, in_sample_target, lazy_target,
@@ -209,10 +209,10 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
     def loss_fn(params, batch_stats, s, g, y):
         v, updates = train_network.apply({"params": params, "batch_stats": batch_stats}, s, g,
                                          train=True, mutable=["batch_stats"])
-        squared = (v - y) ** 2
-        if config.loss_expectile != 0.5:  # expectile regression (IQL's), else Eq. (10)
-            tau = config.loss_expectile
-            squared = jnp.where(y >= v, tau, 1.0 - tau) * squared
+        if config.loss_expectile == 0.5:  # Eq. (10)
+            squared = (v - y) ** 2
+        else:  # expectile regression (IQL's)
+            squared = expectile_loss(y - v, v - y, config.loss_expectile)
         return mean_over_mesh(jnp.mean(squared)), updates.get("batch_stats", batch_stats)
 
     def mean_over_mesh(x):

@@ -86,7 +86,8 @@ from lazyq_jax.agents.common import (
 )
 from lazyq_jax.agents.gcbc import actor_mean, actor_net, actor_stats, value_net
 from lazyq_jax.agents.goals import check_goal_source, minibatches
-from lazyq_jax.agents.gcivl import check_bool, expectile_loss
+from lazyq_jax.agents.gcivl import check_bool
+from lazyq_jax.local_model import expectile_loss
 from lazyq_jax.types import Transitions
 
 

@@ -17,9 +17,9 @@ Losses, per step on one minibatch, summed and minimised by one Adam (``lr`` 3e-4
       q_i   = r + gamma m V^t_i(s', g)                    # q1, q2
       L_V   = sum_i E[ |tau - 1(A < 0)| (q_i - V_i(s, g))^2 ]
 
-  (:func:`expectile_loss` is OGBench's ``expectile_loss(adv, diff, expectile)``: the
-  weight ``tau`` where ``adv >= 0``, else ``1 - tau``, times ``diff^2``; the weight
-  comes from the target network, the difference from the online one);
+  (:func:`lazyq_jax.local_model.expectile_loss` is OGBench's ``expectile_loss(adv, diff,
+  expectile)``: the weight ``tau`` where ``adv >= 0``, else ``1 - tau``, times ``diff^2``;
+  the weight comes from the target network, the difference from the online one);
 * actor, AWR (``GCIVLAgent.actor_loss``), with the online values not differentiated::
 
       A_pi  = (V_1 + V_2)(s', g) / 2 - (V_1 + V_2)(s, g) / 2    # adv = nv - v
@@ -86,15 +86,8 @@ from lazyq_jax.agents.common import (
 )
 from lazyq_jax.agents.gcbc import actor_mean, actor_net, actor_stats, value_net
 from lazyq_jax.agents.goals import check_goal_source, minibatches
+from lazyq_jax.local_model import expectile_loss
 from lazyq_jax.types import Transitions
-
-
-def expectile_loss(adv: jax.Array, diff: jax.Array, expectile: float) -> jax.Array:
-    """OGBench's ``expectile_loss``: ``|tau - 1(adv < 0)| diff^2`` elementwise (the
-    weight ``tau`` where ``adv >= 0``).  With ``adv = diff = x - v`` its mean over a
-    sample ``x`` is minimised by the ``tau``-expectile of ``x``."""
-    weight = jnp.where(adv >= 0, expectile, 1.0 - expectile)
-    return weight * diff ** 2
 
 
 def check_bool(obj: Any, name: str) -> None:
