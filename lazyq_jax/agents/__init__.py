@@ -17,9 +17,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from lazyq_jax.agents import bc, dqn, gcbc, gciql, gcivl, iql, lazy, naf, qrl, reference, td3bc
+from lazyq_jax.agents import bc, crl, dqn, gcbc, gciql, gcivl, iql, lazy, naf, qrl, reference, td3bc
 from lazyq_jax.agents.base import Act, Agent, FixedPolicy, Problem, Spec
 from lazyq_jax.agents.bc import BCConfig
+from lazyq_jax.agents.crl import CRLConfig
 from lazyq_jax.agents.common import BaselineConfig
 from lazyq_jax.agents.dqn import DQNConfig
 from lazyq_jax.agents.gcbc import GCBCConfig
@@ -44,9 +45,10 @@ AGENTS: dict[str, tuple[type | None, Callable[..., Agent]]] = {
     "gciql": (GCIQLConfig, gciql.make),
     "gcbc": (GCBCConfig, gcbc.make),
     "qrl": (QRLConfig, qrl.make),
+    "crl": (CRLConfig, crl.make),
     "random": (None, reference.make),
 }
-BASELINES = ("iql", "td3bc", "dqn", "naf", "bc", "gcivl", "gciql", "gcbc", "qrl")
+BASELINES = ("iql", "td3bc", "dqn", "naf", "bc", "gcivl", "gciql", "gcbc", "qrl", "crl")
 METHODS = (*AGENTS, "scripted")
 
 
@@ -87,6 +89,7 @@ __all__ = [
     "Act",
     "Agent",
     "BCConfig",
+    "CRLConfig",
     "BaselineConfig",
     "DQNConfig",
     "FixedPolicy",
