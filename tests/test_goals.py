@@ -95,7 +95,7 @@ def test_trajectory_goals_need_trajectories_and_state_goals():
         agents.GCIVLConfig(goals="future")
 
 
-@pytest.mark.parametrize("name", ["gcivl", "gciql", "gcbc", "qrl", "crl"])
+@pytest.mark.parametrize("name", ["gcivl", "gciql", "gcbc", "qrl", "crl", "hiql"])
 def test_agents_train_on_trajectory_goals(name):
     """A block on trajectory data runs under jit (the fresh goals inside the step)."""
     data, _ = trajectories()

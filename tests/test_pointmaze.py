@@ -231,6 +231,7 @@ def test_evaluation_matches_ogbench_env_loop(maze, gym_env, max_steps):
 GCIVL = "gcivl:steps=4:width=16:batch_size=32"
 QRL = "qrl:steps=4:width=16:batch_size=32:latent_dim=16"
 CRL = "crl:steps=4:width=16:batch_size=32:latent_dim=16"
+HIQL = "hiql:steps=4:width=16:batch_size=32"
 TINY = ["collect.episodes=12", "collect.episode_steps=61", "eval.episodes_per_task=2",
         "eval.max_steps=20", "train.cycles=2", "neighbours.k=8"]
 
@@ -238,16 +239,16 @@ TINY = ["collect.episodes=12", "collect.episode_steps=61", "eval.episodes_per_ta
 def test_the_task_through_the_cli(tmp_path):
     run_dir = tmp_path / "pm"
     # lazy Q, the closest published method (GCIVL, tiny), QRL (its own value for the figure),
-    # CRL and the references; GCIQL and GCBC share GCIVL's path through the runner
+    # CRL, HIQL and the references; GCIQL and GCBC share GCIVL's path through the runner
     # (tests/test_gc_agents.py trains them)
     args = ["study", "--task", "pointmaze", "--preset", "smoke", "--seeds", "2", "--methods",
-            f"lazy,{GCIVL},{QRL},{CRL},random,scripted", "--run-dir", str(run_dir), "--no-progress"]
+            f"lazy,{GCIVL},{QRL},{CRL},{HIQL},random,scripted", "--run-dir", str(run_dir), "--no-progress"]
     for a in TINY:
         args += ["--set", a]
     out = cli(*args)
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
     results = json.loads((run_dir / "results.json").read_text())
-    assert results["task"] == "pointmaze" and len(results["methods"]) == 6
+    assert results["task"] == "pointmaze" and len(results["methods"]) == 7
     for m in results["methods"].values():
         assert len(m["per_seed"]) == 2
         assert 0.0 <= m["per_seed"][0]["success_rate"] <= 1.0
@@ -260,7 +261,7 @@ def test_the_task_through_the_cli(tmp_path):
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
     rows = lambda r: {name: (m["per_seed"], m["summary"]) for name, m in r["methods"].items()}
     assert rows(json.loads((run_dir / "results.json").read_text())) == rows(results)
-    for method in ("lazy", GCIVL, QRL, CRL):
+    for method in ("lazy", GCIVL, QRL, CRL, HIQL):
         act = load_policy(run_dir, method)
         a = act(jax.random.PRNGKey(0), jnp.zeros((3, 2)), jnp.full((3, 2), 4.0))
         assert a.shape == (3, 2) and bool(jnp.all(jnp.abs(a) <= 1.0 + 1e-6))

@@ -17,7 +17,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from lazyq_jax.agents import bc, crl, dqn, gcbc, gciql, gcivl, iql, lazy, naf, qrl, reference, td3bc
+from lazyq_jax.agents import bc, crl, dqn, gcbc, gciql, gcivl, hiql, iql, lazy, naf, qrl, reference, td3bc
 from lazyq_jax.agents.base import Act, Agent, FixedPolicy, Problem, Spec
 from lazyq_jax.agents.bc import BCConfig
 from lazyq_jax.agents.crl import CRLConfig
@@ -26,6 +26,7 @@ from lazyq_jax.agents.dqn import DQNConfig
 from lazyq_jax.agents.gcbc import GCBCConfig
 from lazyq_jax.agents.gciql import GCIQLConfig
 from lazyq_jax.agents.gcivl import GCIVLConfig
+from lazyq_jax.agents.hiql import HIQLConfig
 from lazyq_jax.agents.iql import IQLConfig
 from lazyq_jax.agents.lazy import LazyAgent, LazyConfig
 from lazyq_jax.agents.naf import NAFConfig
@@ -46,9 +47,10 @@ AGENTS: dict[str, tuple[type | None, Callable[..., Agent]]] = {
     "gcbc": (GCBCConfig, gcbc.make),
     "qrl": (QRLConfig, qrl.make),
     "crl": (CRLConfig, crl.make),
+    "hiql": (HIQLConfig, hiql.make),
     "random": (None, reference.make),
 }
-BASELINES = ("iql", "td3bc", "dqn", "naf", "bc", "gcivl", "gciql", "gcbc", "qrl", "crl")
+BASELINES = ("iql", "td3bc", "dqn", "naf", "bc", "gcivl", "gciql", "gcbc", "qrl", "crl", "hiql")
 METHODS = (*AGENTS, "scripted")
 
 
@@ -96,6 +98,7 @@ __all__ = [
     "GCBCConfig",
     "GCIQLConfig",
     "GCIVLConfig",
+    "HIQLConfig",
     "IQLConfig",
     "LazyAgent",
     "LazyConfig",
