@@ -41,9 +41,11 @@ Networks: ``phi``, ``psi`` are OGBench's MLP (``depth - 1`` hidden layers of ``w
 Dense, GELU, LayerNorm if ``layer_norm``; a linear output of ``latent_dim``), each a stacked
 pair (:func:`~lazyq_jax.agents.common.init_ensemble`; OGBench's ``ensemblize``, the same
 distribution); the actor is GCBC's Gaussian ``N(c u, c)`` (:mod:`lazyq_jax.agents.gcbc`),
-acting with its mode projected onto the action set.  Deviations from OGBench: states and
-goals enter divided by ``problem.state_scale`` and actions in units of ``c =
-problem.action_length`` (OGBench's are already in ``[-1, 1]``); steps from
+acting with its mode projected onto the action set.  Deviations from OGBench: ``phi``'s states and
+``psi``'s goals (states) enter divided by ``problem.state_scale``, the actor's ``(s, g)`` as
+:func:`~lazyq_jax.agents.common.observe` encodes them for every goal-conditioned agent here
+(the goal as it is: the same where the scale is 1, as on the point maze), and actions in
+units of ``c = problem.action_length`` (OGBench's are already in ``[-1, 1]``); steps from
 ``BaselineConfig.steps`` (OGBench 1M).  Only DDPG+BC (OGBench's AWR option, which adds a
 contrastive ``V``, is not offered); no discrete actions, no visual encoders.
 """

@@ -50,9 +50,11 @@ GELU, LayerNorm if ``layer_norm``; a linear output), the twin heads stacked
 outside the ensemble); both actors are GCBC's mean networks (no LayerNorm, head at scale
 1e-2) with unit std: the low-level one's Gaussian ``N(c u, c)`` in actions
 (:func:`~lazyq_jax.agents.common.log_likelihood`), the high-level one's ``N(mean, 1)`` in the
-representation (its log-density without the constant).  Deviations from OGBench: states and
-goals enter as :func:`~lazyq_jax.agents.common.observe` encodes them (divided by
-``problem.state_scale``), actions in units of ``c = problem.action_length``; steps from
+representation (its log-density without the constant).  Deviations from OGBench: the pairs ``(s, g)`` of ``z`` and
+the high-level actor enter as :func:`~lazyq_jax.agents.common.observe` encodes them for
+every goal-conditioned agent here (the state divided by ``problem.state_scale``, the goal as
+it is: the same only where the scale is 1, as on the point maze), the states beside ``z``
+divided by the scale, actions in units of ``c = problem.action_length``; steps from
 ``BaselineConfig.steps`` (OGBench 1M); no discrete actions, no visual encoders.
 """
 
