@@ -203,7 +203,7 @@ def test_resume_reuses_everything_and_mismatches_are_refused(study_dir):
 def test_names_are_checked_and_listed():
     bad = cli("study", "--preset", "smoke", "--methods", "lazy,sarsa", "--run-dir", "unused")
     assert bad.returncode == 2 and "unknown method 'sarsa'" in bad.stderr
-    assert "lazy, iql, td3bc, dqn, naf, bc, gcivl, gciql, gcbc, qrl, random, scripted" in bad.stderr
+    assert "lazy, iql, td3bc, dqn, naf, bc, gcivl, gciql, gcbc, qrl, crl, hiql, random, scripted" in bad.stderr
     task = cli("train", "--task", "crane")
     assert task.returncode == 2 and "unknown task 'crane'; known tasks: push, arm, arm-long" in task.stderr
     preset = cli("train", "--task", "arm", "--preset", "forgiving")
