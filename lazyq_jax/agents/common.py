@@ -162,6 +162,21 @@ def observe_action(problem: Problem, s: jax.Array, g: jax.Array | None,
                             jnp.asarray(a, jnp.float32) / problem.action_length], axis=-1)
 
 
+def scaled_states(problem: Problem, s: jax.Array) -> jax.Array:
+    """States (or goals that are states) divided by ``problem.state_scale``, in float32."""
+    return jnp.asarray(s, jnp.float32) / jnp.asarray(problem.state_scale, jnp.float32)
+
+
+def require_state_goals(spec: Spec, who: str, why: str) -> None:
+    """``ConfigError`` unless the goals are states (``g[N, d_s]``): ``who`` (the agent)
+    ``why`` (what it does with them) is the start of the message."""
+    if spec.goal != spec.state_dim:
+        raise ConfigError(
+            f"{who} {why}, so its goals must be states (g[N, {spec.state_dim}] for states "
+            f"s[N, {spec.state_dim}]); these data have {spec.describe()}: use a goal-conditioned "
+            "method for other goals (lazy, gcivl)")
+
+
 def init_ensemble(net: nn.Module, key: jax.Array, x: jax.Array, n: int = 2) -> Any:
     """``n`` independently initialised parameter sets, stacked on a leading axis."""
     return jax.vmap(lambda k: net.init(k, x))(jax.random.split(key, n))

@@ -71,11 +71,12 @@ from lazyq_jax.agents.common import (
     log_likelihood,
     observe,
     project,
+    require_state_goals,
+    scaled_states,
 )
 from lazyq_jax.agents.gcbc import GCMLP, actor_mean, actor_net, actor_stats
 from lazyq_jax.agents.gcivl import check_bool
 from lazyq_jax.agents.goals import ACTOR_GOALS, GoalMix, check_goal_source, minibatches
-from lazyq_jax.config import ConfigError
 from lazyq_jax.types import Transitions
 
 # OGBench's CRL critic goals: a later state of the same trajectory at a geometric offset
@@ -123,11 +124,7 @@ class CRL(Baseline):
 
     def check_data(self, spec: Spec) -> None:
         """Goals must be states (the critic tells a row's future states from other rows')."""
-        if spec.goal != spec.state_dim:
-            raise ConfigError(
-                f"crl contrasts a row's future states with other rows', so its goals must be "
-                f"states (g[N, {spec.state_dim}] for states s[N, {spec.state_dim}]); these data "
-                f"have {spec.describe()}: use a goal-conditioned method for other goals (lazy, gcivl)")
+        require_state_goals(spec, "crl", "contrasts a row's future states with other rows'")
 
     def init_model(self, key: jax.Array, spec: Spec) -> Any:
         self.check_data(spec)
@@ -141,7 +138,7 @@ class CRL(Baseline):
 
     # --- the critic
     def scaled(self, s: jax.Array) -> jax.Array:
-        return jnp.asarray(s, jnp.float32) / jnp.asarray(self.problem.state_scale, jnp.float32)
+        return scaled_states(self.problem, s)
 
     def state_action(self, s: jax.Array, a: jax.Array) -> jax.Array:
         """``phi``'s input: the scaled state and the action in units of ``c``."""

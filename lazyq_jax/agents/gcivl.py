@@ -96,6 +96,21 @@ def check_bool(obj: Any, name: str) -> None:
           f"{type(obj).__name__}.{name} must be True or False, got {value!r}")
 
 
+def ivl_value_loss(next_v_t: jax.Array, v_t: jax.Array, v_i: jax.Array, b: Transitions,
+                   gamma: float, expectile: float) -> tuple[jax.Array, dict]:
+    """OGBench's IVL value loss (the module docstring's ``L_V``; HIQL's too) from the target
+    twin at ``s'`` and ``s`` (``next_v_t``, ``v_t``) and the online twin at ``s`` (``v_i``),
+    each ``[2, B]``, and the metrics."""
+    m = mask_of(b)
+    q = b.r + gamma * m * jnp.min(next_v_t, axis=0)
+    adv = q - jnp.mean(v_t, axis=0)
+    q_i = b.r + gamma * m * next_v_t                                     # q1, q2
+    value_loss = jnp.sum(jnp.mean(expectile_loss(adv, q_i - v_i, expectile), axis=1))
+    v = jnp.mean(v_i, axis=0)
+    return value_loss, {"value_loss": value_loss, "v_mean": jnp.mean(v),
+                        "v_max": jnp.max(v), "v_min": jnp.min(v)}
+
+
 @dataclasses.dataclass(frozen=True)
 class GCIVLConfig(BaselineConfig):
     """:class:`BaselineConfig` with OGBench's ``gcivl`` defaults (``batch_size`` 1024,
@@ -157,17 +172,10 @@ class GCIVL(Baseline):
         return apply_ensemble(self.value_net, value, observe(self.problem, s, g))[..., 0]
 
     def value_loss(self, params: Any, target_value: Any, b: Transitions):
-        cfg = self.config
-        m = mask_of(b)
-        next_v_t = self.values(target_value, b.s_next, b.g)             # [2, B]
-        q = b.r + cfg.gamma * m * jnp.min(next_v_t, axis=0)
-        adv = q - jnp.mean(self.values(target_value, b.s, b.g), axis=0)
-        q_i = b.r + cfg.gamma * m * next_v_t                             # q1, q2
-        v_i = self.values(params["value"], b.s, b.g)                     # v1, v2
-        value_loss = jnp.sum(jnp.mean(expectile_loss(adv, q_i - v_i, cfg.expectile), axis=1))
-        v = jnp.mean(v_i, axis=0)
-        return value_loss, {"value_loss": value_loss, "v_mean": jnp.mean(v),
-                            "v_max": jnp.max(v), "v_min": jnp.min(v)}
+        return ivl_value_loss(self.values(target_value, b.s_next, b.g),
+                              self.values(target_value, b.s, b.g),
+                              self.values(params["value"], b.s, b.g),
+                              b, self.config.gamma, self.config.expectile)
 
     def batch(self, data, rows, key, n_valid):
         """``(value batch, actor batch)``: OGBench's goals from the trajectories, or the rows'."""

@@ -77,14 +77,15 @@ from lazyq_jax.agents.common import (
     check_range,
     init_ensemble,
     log_likelihood,
-    mask_of,
     observe,
     polyak,
     project,
+    require_state_goals,
+    scaled_states,
     take,
 )
 from lazyq_jax.agents.gcbc import GCMLP, actor_stats, value_net
-from lazyq_jax.agents.gcivl import check_bool
+from lazyq_jax.agents.gcivl import check_bool, ivl_value_loss
 from lazyq_jax.agents.goals import (
     ACTOR_GOALS,
     VALUE_GOALS,
@@ -92,8 +93,6 @@ from lazyq_jax.agents.goals import (
     sample_goal_rows,
     uses_trajectories,
 )
-from lazyq_jax.config import ConfigError
-from lazyq_jax.local_model import expectile_loss
 from lazyq_jax.types import Transitions
 
 
@@ -155,11 +154,7 @@ class HIQL(Baseline):
 
     def check_data(self, spec: Spec) -> None:
         """Goals must be states (subgoals are states of the trajectories)."""
-        if spec.goal != spec.state_dim:
-            raise ConfigError(
-                f"hiql's subgoals are states of the data's trajectories, so its goals must be "
-                f"states (g[N, {spec.state_dim}] for states s[N, {spec.state_dim}]); these data "
-                f"have {spec.describe()}: use a goal-conditioned method for other goals (lazy, gcivl)")
+        require_state_goals(spec, "hiql", "takes its subgoals from the data's trajectories")
 
     def init_model(self, key: jax.Array, spec: Spec) -> Any:
         self.check_data(spec)
@@ -175,7 +170,7 @@ class HIQL(Baseline):
 
     # --- networks
     def scaled(self, s: jax.Array) -> jax.Array:
-        return jnp.asarray(s, jnp.float32) / jnp.asarray(self.problem.state_scale, jnp.float32)
+        return scaled_states(self.problem, s)
 
     def rep(self, rep: Any, s: jax.Array, g: jax.Array) -> jax.Array:
         """``z(s, g) [B, rep_dim]``: the length-normalised goal representation."""
@@ -197,18 +192,11 @@ class HIQL(Baseline):
 
     # --- losses
     def value_loss(self, params: Any, target_value: Any, b: Transitions):
-        cfg = self.config
-        m = mask_of(b)
         rep_t = jax.lax.stop_gradient(params["rep"])  # the target shares the online goal_rep
-        next_v_t = self.values(rep_t, target_value, b.s_next, b.g)
-        q = b.r + cfg.gamma * m * jnp.min(next_v_t, axis=0)
-        adv = q - jnp.mean(self.values(rep_t, target_value, b.s, b.g), axis=0)
-        q_i = b.r + cfg.gamma * m * next_v_t
-        v_i = self.values(params["rep"], params["value"], b.s, b.g)
-        value_loss = jnp.sum(jnp.mean(expectile_loss(adv, q_i - v_i, cfg.expectile), axis=1))
-        v = jnp.mean(v_i, axis=0)
-        return value_loss, {"value_loss": value_loss, "v_mean": jnp.mean(v),
-                            "v_max": jnp.max(v), "v_min": jnp.min(v)}
+        return ivl_value_loss(self.values(rep_t, target_value, b.s_next, b.g),
+                              self.values(rep_t, target_value, b.s, b.g),
+                              self.values(params["rep"], params["value"], b.s, b.g),
+                              b, self.config.gamma, self.config.expectile)
 
     def advantage_weight(self, params: Any, s: jax.Array, s_next: jax.Array, g: jax.Array,
                          alpha: float):

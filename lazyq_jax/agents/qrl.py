@@ -79,11 +79,12 @@ from lazyq_jax.agents.common import (
     log_likelihood,
     observe,
     project,
+    require_state_goals,
+    scaled_states,
 )
 from lazyq_jax.agents.gcbc import GCMLP, actor_mean, actor_net, actor_stats
 from lazyq_jax.agents.gcivl import check_bool
 from lazyq_jax.agents.goals import ACTOR_GOALS, GoalMix, check_goal_source, minibatches
-from lazyq_jax.config import ConfigError
 from lazyq_jax.types import Transitions
 
 # OGBench's QRL value goals: a random dataset state always
@@ -204,11 +205,7 @@ class QRL(Baseline):
 
     def check_data(self, spec: Spec) -> None:
         """Goals must be states (the quasimetric compares two states)."""
-        if spec.goal != spec.state_dim:
-            raise ConfigError(
-                f"qrl learns a quasimetric between states, so its goals must be states "
-                f"(g[N, {spec.state_dim}] for states s[N, {spec.state_dim}]); these data have "
-                f"{spec.describe()}: use a goal-conditioned method for other goals (lazy, gcivl)")
+        require_state_goals(spec, "qrl", "learns a quasimetric between states")
 
     def init_model(self, key: jax.Array, spec: Spec) -> Any:
         self.check_data(spec)
@@ -225,7 +222,7 @@ class QRL(Baseline):
 
     # --- the quasimetric
     def scaled(self, s: jax.Array) -> jax.Array:
-        return jnp.asarray(s, jnp.float32) / jnp.asarray(self.problem.state_scale, jnp.float32)
+        return scaled_states(self.problem, s)
 
     def latent(self, params: Any, s: jax.Array) -> jax.Array:
         """``phi(s) [B, latent_dim]``."""
