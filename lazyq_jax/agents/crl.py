@@ -68,13 +68,13 @@ from lazyq_jax.agents.common import (
     check_int,
     check_range,
     init_ensemble,
-    log_likelihood,
     observe,
     project,
     require_state_goals,
     scaled_states,
 )
-from lazyq_jax.agents.gcbc import GCMLP, actor_mean, actor_net, actor_stats
+from lazyq_jax.agents.gcbc import GCMLP, actor_mean, actor_net
+from lazyq_jax.agents.gciql import ddpg_bc_loss
 from lazyq_jax.agents.gcivl import check_bool
 from lazyq_jax.agents.goals import ACTOR_GOALS, GoalMix, check_goal_source, minibatches
 from lazyq_jax.types import Transitions
@@ -175,13 +175,7 @@ class CRL(Baseline):
         q_actions = project(problem, mean)
         frozen = jax.lax.stop_gradient({k: v for k, v in params.items() if k != "actor"})
         q = jnp.min(self.critic(frozen, b.s, b.g, q_actions), axis=0)
-        q_loss = -jnp.mean(q) / jax.lax.stop_gradient(jnp.mean(jnp.abs(q)) + 1e-6)
-        log_prob = log_likelihood(problem, mean, b.a)
-        bc_loss = -jnp.mean(cfg.alpha * log_prob)
-        actor_loss = q_loss + bc_loss
-        return actor_loss, {"actor_loss": actor_loss, "q_loss": q_loss, "bc_loss": bc_loss,
-                            "q_pi_mean": jnp.mean(q), "q_pi_abs_mean": jnp.mean(jnp.abs(q)),
-                            "bc_log_prob": jnp.mean(log_prob), **actor_stats(problem, mean, b.a)}
+        return ddpg_bc_loss(problem, cfg.alpha, mean, q, b.a)
 
     def loss(self, params: Any, b: Transitions, b_actor: Transitions | None = None
              ) -> tuple[jax.Array, dict]:

@@ -91,6 +91,21 @@ from lazyq_jax.local_model import expectile_loss
 from lazyq_jax.types import Transitions
 
 
+def ddpg_bc_loss(problem: Problem, alpha: float, mean: jax.Array, q: jax.Array, a: jax.Array
+                 ) -> tuple[jax.Array, dict]:
+    """OGBench's DDPG+BC actor loss (the module docstring's ``L_pi``; QRL's and CRL's too) from
+    the actor's mean ``[B, n_a]``, the critic's value ``q [B]`` of its projected mean (the
+    gradient reaches the actor through the action only) and the data's actions ``a``, and the
+    metrics."""
+    q_loss = -jnp.mean(q) / jax.lax.stop_gradient(jnp.mean(jnp.abs(q)) + 1e-6)
+    log_prob = log_likelihood(problem, mean, a)
+    bc_loss = -jnp.mean(alpha * log_prob)
+    actor_loss = q_loss + bc_loss
+    return actor_loss, {"actor_loss": actor_loss, "q_loss": q_loss, "bc_loss": bc_loss,
+                        "q_pi_mean": jnp.mean(q), "q_pi_abs_mean": jnp.mean(jnp.abs(q)),
+                        "bc_log_prob": jnp.mean(log_prob), **actor_stats(problem, mean, a)}
+
+
 @dataclasses.dataclass(frozen=True)
 class GCIQLConfig(BaselineConfig):
     """:class:`BaselineConfig` with OGBench's ``gciql`` defaults (``batch_size`` 1024,
@@ -173,14 +188,7 @@ class GCIQL(Baseline):
         q_actions = project(problem, mean)
         critic = jax.lax.stop_gradient(params["critic"])  # OGBench: the stored parameters
         q = jnp.min(self.q(critic, b.s, b.g, q_actions), axis=0)
-        q_loss = -jnp.mean(q) / jax.lax.stop_gradient(jnp.mean(jnp.abs(q)) + 1e-6)
-        log_prob = log_likelihood(problem, mean, b.a)
-        bc_loss = -jnp.mean(cfg.alpha * log_prob)
-        actor_loss = q_loss + bc_loss
-        return actor_loss, {"actor_loss": actor_loss, "q_loss": q_loss, "bc_loss": bc_loss,
-                            "q_pi_mean": jnp.mean(q), "q_pi_abs_mean": jnp.mean(jnp.abs(q)),
-                            "bc_log_prob": jnp.mean(log_prob),
-                            **actor_stats(problem, mean, b.a)}
+        return ddpg_bc_loss(problem, cfg.alpha, mean, q, b.a)
 
     def batch(self, data, rows, key, n_valid):
         """``(value batch, actor batch)``: OGBench's goals from the trajectories, or the rows'."""

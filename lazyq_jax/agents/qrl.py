@@ -76,13 +76,13 @@ from lazyq_jax.agents.common import (
     check,
     check_int,
     check_range,
-    log_likelihood,
     observe,
     project,
     require_state_goals,
     scaled_states,
 )
-from lazyq_jax.agents.gcbc import GCMLP, actor_mean, actor_net, actor_stats
+from lazyq_jax.agents.gcbc import GCMLP, actor_mean, actor_net
+from lazyq_jax.agents.gciql import ddpg_bc_loss
 from lazyq_jax.agents.gcivl import check_bool
 from lazyq_jax.agents.goals import ACTOR_GOALS, GoalMix, check_goal_source, minibatches
 from lazyq_jax.types import Transitions
@@ -269,13 +269,7 @@ class QRL(Baseline):
         frozen = jax.lax.stop_gradient({k: v for k, v in params.items() if k != "actor"})
         z, z_goal = self.latent(frozen, b.s), self.latent(frozen, b.g)
         q = -self.latent_distance(frozen, self.next_latent(frozen, z, q_actions), z_goal)
-        q_loss = -jnp.mean(q) / jax.lax.stop_gradient(jnp.mean(jnp.abs(q)) + 1e-6)
-        log_prob = log_likelihood(problem, mean, b.a)
-        bc_loss = -jnp.mean(cfg.alpha * log_prob)
-        actor_loss = q_loss + bc_loss
-        return actor_loss, {"actor_loss": actor_loss, "q_loss": q_loss, "bc_loss": bc_loss,
-                            "q_pi_mean": jnp.mean(q), "bc_log_prob": jnp.mean(log_prob),
-                            **actor_stats(problem, mean, b.a)}
+        return ddpg_bc_loss(problem, cfg.alpha, mean, q, b.a)
 
     def loss(self, params: Any, b: Transitions, b_actor: Transitions | None = None
              ) -> tuple[jax.Array, dict]:
