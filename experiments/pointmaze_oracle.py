@@ -68,7 +68,7 @@ from lazyq_jax.local_model import (
 )
 from lazyq_jax.neighbours import find_neighbours
 from lazyq_jax.neighbours.query import query_policy, stack_policy_indices
-from lazyq_jax.policy import policy_index
+from lazyq_jax.policy import LazyPolicy, lazy_policy, policy_index
 from lazyq_jax.run import load_run
 from lazyq_jax.stats import format_ci, t_interval
 from lazyq_jax.targets import bootstrap_values, evaluate_in_batches, in_sample_target, lazy_target
@@ -373,6 +373,18 @@ def query_goal_act(value_fn, gamma: float, action_length: float, action_set: str
     return act_of
 
 
+def subgoal_policy(value_fn, p: dict, action_length: float, action_set: str, steps: int) -> LazyPolicy:
+    """The lazy policy's two-level step (``neighbours.subgoal_steps``,
+    :func:`lazyq_jax.policy.lazy_subgoals`) over one run's data with any learned
+    ``value_fn(s, g)``: neighbourhoods in state space, subgoals ``steps`` ahead on the
+    neighbours' trajectories, local models with state offsets.  ``p``: the arrays of
+    ``main``'s ``sg`` (stacked over one seed)."""
+    return LazyPolicy(p["index"], p["actions"], jnp.zeros(p["actions"].shape[:2], jnp.float32),
+                      jnp.full(1, action_length, jnp.float32), action_set, states=p["states"],
+                      next_states=p["next"], value_apply=lambda _, s, g: value_fn(s, g),
+                      subgoal_steps=steps, traj_last=p["last"])
+
+
 def policy_table(paths) -> None:
     """The policy's success with each value over the seeds of several oracle.json files: mean
     [95 % t interval] of the 5-task success, and each task's mean."""
@@ -412,6 +424,11 @@ def main() -> None:
                         "at the query's goal, neighbourhoods in state space (query_goal_act)")
     p.add_argument("--query-goal-only", action="store_true",
                    help="evaluate only the --query-goal policies (none of the tabulated ones)")
+    p.add_argument("--subgoal-steps", type=int, nargs="*", default=[],
+                   help="also the two-level step (subgoal_policy) with each learned V, a subgoal this "
+                        "many steps ahead on the neighbours' trajectories (HIQL's: 25)")
+    p.add_argument("--subgoal-only", action="store_true",
+                   help="evaluate only the --subgoal-steps policies")
     p.add_argument("--skip-fixed-point", action="store_true")
     p.add_argument("--skip-policy", action="store_true")
     p.add_argument("--probe-k", type=int, nargs="*", default=[],
@@ -486,7 +503,7 @@ def main() -> None:
 
     # ---- the policy with each value table
     base = agent.policies(loaded.states, sd.stacked, sd.n_valid)
-    evaluated = {} if args.skip_policy or args.query_goal_only else others if args.only_values else tables
+    evaluated = {} if args.skip_policy or args.query_goal_only or args.subgoal_only else others if args.only_values else tables
     for name, y in evaluated.items():
         values = np.zeros(np.shape(base.values), np.float32)
         values[0, :n] = y
@@ -511,6 +528,24 @@ def main() -> None:
             results["policy"][name + ", at the query's goal"] = ev.per_seed[0]["tasks"]
             print(f"policy with {name} at the query's goal: {loaded.task.log_line(ev.per_seed[0])} "
                   f"({time.perf_counter() - t:.0f} s)", flush=True)
+    if args.subgoal_steps and not args.skip_policy:
+        nc = config.neighbours
+        index = stack_policy_indices([policy_index(s, None, k=nc.k, radius_s=nc.radius_s,
+                                                   radius_g=nc.radius_g, growth=nc.growth,
+                                                   max_level=nc.max_level, n_valid=n)])
+        sg = {"index": index, "actions": jnp.asarray(np.asarray(data.a[:n]))[None],
+              "states": jnp.asarray(s)[None], "next": jnp.asarray(s2)[None],
+              "last": jnp.asarray(np.asarray(data.traj_last[:n]))[None]}
+        for steps in args.subgoal_steps:
+            for name, fn in learned.items():
+                policy = subgoal_policy(fn, sg, agent.problem.action_length, agent.problem.action_set, steps)
+                t = time.perf_counter()
+                ev = loaded.task.evaluate(lambda pol: (lambda key, s, g: lazy_policy(pol, key, s, g)[0]),
+                                          policy, config, [seed])
+                label = f"{name}, subgoals {steps} steps ahead"
+                results["policy"][label] = ev.per_seed[0]["tasks"]
+                print(f"policy with {label}: {loaded.task.log_line(ev.per_seed[0])} "
+                      f"({time.perf_counter() - t:.0f} s)", flush=True)
     out = Path(args.out) if args.out else Path(args.run_dir) / "oracle.json"
     out.write_text(json.dumps(results, indent=1))
     print(f"-> {out}")

@@ -82,7 +82,13 @@ class NeighbourConfig:
     ``"zero"`` (the centre of the action set, the paper's tie) or ``"random"`` (an action
     of the set's boundary drawn from the step's key: a uniform direction of the ball, a
     uniform corner of the box).  Under deterministic dynamics the zero action is a fixed
-    point: the next step asks the same query, and the episode stays there."""
+    point: the next step asks the same query, and the episode stays there.
+    ``subgoal_steps``: ``0`` (the paper's policy: Eq. 9's greedy step towards the goal) or
+    ``H > 0``, a two-level policy for long horizons (:func:`lazyq_jax.policy.lazy_subgoals`):
+    each step picks a subgoal among the states the neighbours' trajectories reached ``H``
+    steps later, by the trained ``V(w, g)``, and takes Eq. (9)'s step towards it (HIQL's
+    hierarchy, with the data's states as the subgoals); it needs trajectory data whose goals
+    are states, changes acting only, and costs ``3k + 1`` network evaluations a step."""
 
     k: int = 20
     radius_s: float = 0.06
@@ -94,6 +100,7 @@ class NeighbourConfig:
     local_model: str = "action"
     fit_weights: str = "uniform"
     no_model_action: str = "zero"
+    subgoal_steps: int = 0
 
     def __post_init__(self) -> None:
         _check(self.fit_weights in FIT_WEIGHTS,
@@ -109,7 +116,7 @@ class NeighbourConfig:
         _check(self.local_model in LOCAL_MODELS,
                f"NeighbourConfig.local_model must be one of {LOCAL_MODELS}, got {self.local_model!r}")
         _counts(self, "k")
-        _counts(self, "max_level", minimum=0)
+        _counts(self, "max_level", "subgoal_steps", minimum=0)
         _positive(self, "radius_s", "radius_g")
         _check(self.growth > 1, f"NeighbourConfig.growth must be > 1, got {self.growth!r}")
 

@@ -50,6 +50,11 @@ class LazyPolicy:
     next_states: jax.Array | None = None
     value_vars: Any = None
     value_apply: Callable | None = struct.field(pytree_node=False, default=None)
+    # neighbours.subgoal_steps = H > 0: the two-level step (lazy_subgoals), which reads the
+    # rows' trajectories (traj_last [N]: the row of each row's trajectory's last transition)
+    # and values the neighbours per step, as with bootstrap_goal="row"
+    subgoal_steps: int = struct.field(pytree_node=False, default=0)
+    traj_last: jax.Array | None = None
 
 
 def policy_index(data_s, data_g, *, k: int, radius_s: float, radius_g: float, growth: float,
@@ -94,6 +99,35 @@ def neighbour_values(policy: LazyPolicy, rows: jax.Array, g) -> jax.Array:
     return values_at_goals(partial(policy.value_apply, policy.value_vars), policy.next_states[rows], g)
 
 
+def lazy_subgoals(policy: LazyPolicy, rows: jax.Array, valid: jax.Array, s: jax.Array,
+                  g: jax.Array) -> jax.Array:
+    """The subgoals ``w [B, d_s]`` of the two-level step (``neighbours.subgoal_steps = H >
+    0``): HIQL's hierarchy (Park et al., 2023) made lazy, with no subgoal network, the
+    subgoals being the data's own states.
+
+    Each neighbour ``j`` of the query's neighbourhood ``rows [B, k]`` (``valid``: found)
+    offers the state its trajectory reached ``H`` steps later, ``w_j = s'[min(j + H - 1,
+    last_j)]`` (the trajectory's final state where it ends sooner); the subgoal is the
+    candidate of the largest ``V(w_j, g)``, or the goal ``g`` itself once it is as near as
+    the candidates lead, ``V(s, g) >= mean_j V(s, w_j)`` (one V measures both, whatever the
+    reward's scale; switching where no candidate is valued above ``s`` instead stops at V's
+    local maxima, the walls that the subgoals are there to go round).  The low level is then Eq. (9)'s step with the neighbours valued at ``w``
+    instead of ``g``: the greedy step compares values one step apart, where a learned V's
+    errors are as large as its differences; the subgoal compares values ``H`` steps apart.
+    """
+    v = partial(policy.value_apply, policy.value_vars)
+    ahead = policy.next_states[jnp.minimum(rows + policy.subgoal_steps - 1, policy.traj_last[rows])]
+    v_ahead = jnp.where(valid, values_at_goals(v, ahead, g), -jnp.inf)
+    best = jnp.argmax(v_ahead, axis=1)
+    w = jnp.take_along_axis(ahead, best[:, None, None], axis=1)[:, 0]
+    b, k, d = ahead.shape
+    v_reach = v(jnp.broadcast_to(s[:, None], ahead.shape).reshape(b * k, d), ahead.reshape(b * k, d))
+    reach = jnp.sum(jnp.where(valid, v_reach.reshape(b, k), 0.0), axis=1) / jnp.maximum(
+        jnp.sum(valid, axis=1), 1)
+    at_goal = v(s, g) >= reach
+    return jnp.where(at_goal[:, None], g, w)
+
+
 def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):
     """Greedy actions (Eq. 9) for a batch of states ``s[B, d_s]``, goals ``g[B]`` /
     ``g[B, d_g]`` / ``None`` (as the dataset's).
@@ -110,11 +144,16 @@ def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):
     (:func:`lazyq_jax.local_model.boundary_action`) drawn from ``fold_in(key, 1)``: the
     neighbour query keeps ``key``, so every other step is the same in both modes.
 
+    With ``policy.subgoal_steps > 0`` the step is the low level of a two-level policy: its
+    neighbours are valued at a subgoal among the data (:func:`lazy_subgoals`), not at ``g``.
+
     Returns ``(actions[B, n_a], beta[B, n_a], found[B])``.
     """
     x = s if policy.features is None else policy.features(s)
     nb = query_policy(policy.index, key, x, None if policy.value_apply is not None else g)
     rows = jnp.maximum(nb.idx, 0)
+    if policy.subgoal_steps > 0:
+        g = lazy_subgoals(policy, rows, nb.idx >= 0, s, g)
     offsets = None if policy.states is None else neighbour_offsets(
         policy.states[rows], s, None if policy.goals is None else policy.goals[rows],
         None if policy.goals is None else g)

@@ -15,7 +15,8 @@ action value model Q(s, a, g) ~ alpha + beta.a (Eq. 4), behind the agent interfa
 * ``act``: Eq. (9), the greedy action of the local fit over the dataset
   (:func:`lazyq_jax.policy.lazy_policy`); where the local model prefers no action (no
   neighbourhood within ``neighbours.max_level`` growths, or ``beta = 0``) the zero action,
-  or a random one (``neighbours.no_model_action``).
+  or a random one (``neighbours.no_model_action``).  With ``neighbours.subgoal_steps`` the
+  step goes towards a subgoal among the data's states (:func:`lazyq_jax.policy.lazy_subgoals`).
 """
 
 from __future__ import annotations
@@ -91,13 +92,18 @@ class LazyAgent(Agent):
                                   state_offsets=config.neighbours.local_model != "action",
                                   goal_offsets=config.neighbours.local_model == "action+state+goal",
                                   state_scale=problem.state_scale, probes=problem.probes, mesh=mesh)
-        # The trained network's inference forward pass, which the policy calls per step with
-        # bootstrap_goal="row" (one object, so that the policy's static field compares equal).
-        self.value_apply = partial(self.trainer.network.apply, train=False) if self.row_goal else None
+        self.subgoal_steps = config.neighbours.subgoal_steps
+        # The policy values the neighbours at each step (at the query's goal with
+        # bootstrap_goal="row", at a subgoal with subgoal_steps) rather than from the table.
+        self.per_step = self.row_goal or self.subgoal_steps > 0
+        # The trained network's inference forward pass, which the policy then calls (one
+        # object, so that the policy's static field compares equal).
+        self.value_apply = partial(self.trainer.network.apply, train=False) if self.per_step else None
 
     # --- training
     def init(self, key, data: Transitions):
         self.check_k(data)
+        self.check_subgoals(data)
         if self.config.train.relabel_every:
             uses_trajectories("trajectories", data, "lazy Q's train.relabel_every")
         return self.trainer.init(key, data)
@@ -116,6 +122,21 @@ class LazyAgent(Agent):
             raise ValueError(f"neighbours.k={nb.k} is below the {coef} coefficients of the local "
                              f"model {nb.local_model!r} on these data; raise k or choose a smaller "
                              "local_model")
+
+    def check_subgoals(self, data: Transitions) -> None:
+        """``ConfigError`` when ``neighbours.subgoal_steps`` cannot apply to ``data``: its
+        subgoals are the trajectories' later states, valued as goals."""
+        if self.subgoal_steps == 0:
+            return
+        if data.traj_last is None:
+            raise ConfigError("neighbours.subgoal_steps takes its subgoals from the data's trajectories, "
+                              "but these data have none (Transitions.traj_last): set "
+                              "neighbours.subgoal_steps=0")
+        if data.g is None or np.ndim(data.g) != np.ndim(data.s) or np.shape(data.g)[-1] != np.shape(data.s)[-1]:
+            raise ConfigError("neighbours.subgoal_steps values states as goals, so the goals must be "
+                              f"states (g[N, {np.shape(data.s)[-1]}]); these data have goals "
+                              f"{None if data.g is None else tuple(np.shape(data.g))}: set "
+                              "neighbours.subgoal_steps=0")
 
     def refresh(self, block: int) -> bool:
         every = self.config.train.relabel_every
@@ -211,9 +232,10 @@ class LazyAgent(Agent):
         bootstrapped values ``r + gamma (1 - done) V(s', g)`` of its trained V (with
         ``train.bootstrap_goal="row"`` instead the index in state space, the next states and
         the trained network, which each step values at the query's goal)."""
+        self.check_subgoals(data)
         nc, n_seeds = self.config.neighbours, int(np.shape(n_valid)[0])
         xs = [self.search_space(data.s[i]) for i in range(n_seeds)]
-        search_g = None if self.row_goal else data.g
+        search_g = None if self.per_step else data.g
         indices = [policy_index(xs[i], None if search_g is None else np.asarray(search_g[i]),
                                 k=nc.k, radius_s=nc.radius_s, radius_g=nc.radius_g, growth=nc.growth,
                                 max_level=nc.max_level, n_valid=int(n_valid[i]))
@@ -225,7 +247,7 @@ class LazyAgent(Agent):
         self._policy_like = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), index)
         gamma = self.config.train.gamma
         value_vars = next_states = None
-        if self.row_goal:  # each step values the neighbours' next states at the query's goal
+        if self.per_step:  # each step values the neighbours' next states at the query's goal
             values = jnp.zeros(np.shape(data.r), jnp.float32)
             value_vars = {"params": states.params, "batch_stats": states.batch_stats}
             next_states = data.s_next
@@ -235,14 +257,16 @@ class LazyAgent(Agent):
         length = jnp.full(n_seeds, self.problem.action_length, jnp.float32)
         model = self.config.neighbours.local_model
         states = data.s if model != "action" else None
-        goals = data.g if model == "action+state+goal" else None
+        # (the two-level step values the neighbours at a subgoal, not at their rows' goals)
+        goals = data.g if model == "action+state+goal" and self.subgoal_steps == 0 else None
         kernel = None
         if nc.fit_weights != "uniform":
             x = jnp.stack([jnp.asarray(x, jnp.float32) for x in xs])
             kernel = FitKernel(x, search_g, nc.radius_s, nc.radius_g, nc.growth)
         return LazyPolicy(index, data.a, values, length, self.problem.action_set, self.problem.features,
                           states, goals, kernel, nc.no_model_action, next_states, value_vars,
-                          self.value_apply)
+                          self.value_apply, self.subgoal_steps,
+                          data.traj_last if self.subgoal_steps else None)
 
     def act(self, policy: LazyPolicy):
         return lambda key, s, g: lazy_policy(policy, key, s, g)[0]
