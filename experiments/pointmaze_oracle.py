@@ -25,6 +25,10 @@ Two measurements on one trained lazy run (its first seed, its data, its neighbou
   ``--probe-query-goal`` also the backup of ``train.bootstrap_goal="row"`` (state-space
   neighbourhoods, each neighbour's next state valued at the row's goal).
 
+* **Two-level step** (``--subgoal-steps H``): the lazy policy with ``neighbours.subgoal_steps
+  = H`` (:func:`lazyq_jax.policy.lazy_subgoals`) on the run's data with the run's V or the
+  ``--values``' (``--only-values``), without retraining.
+
 ``V*`` and ``V_line`` are pointmaze_walls.py's (a BFS over a 0.25 grid of free positions;
 accurate to a few steps).
 
@@ -44,21 +48,28 @@ accurate to a few steps).
     .venv/bin/python experiments/pointmaze_oracle.py runs/pm_rl10 --skip-fixed-point \
         --query-goal-only --values runs/pm_qrl_eq_s0:qrl:width=128:steps=11689 \
         --out runs/pm_qrl_eq_s0/oracle_qg.json       # the run's V and QRL's d at the query's goal
+    .venv/bin/python experiments/pointmaze_oracle.py runs/pm_lazy_s0 --skip-fixed-point \
+        --subgoal-only --subgoal-steps 25 --out runs/pm_lazy_s0/oracle_sub.json
+                                   # the two-level step (neighbours.subgoal_steps) on the run's V
+
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import json
 import sys
 import time
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy.stats import spearmanr
 
+from lazyq_jax import agents
 from lazyq_jax.keys import purpose_key
 from lazyq_jax.local_model import (
     fit_local_linear,
@@ -73,6 +84,7 @@ from lazyq_jax.run import load_run
 from lazyq_jax.stats import format_ci, t_interval
 from lazyq_jax.targets import bootstrap_values, evaluate_in_batches, in_sample_target, lazy_target
 from lazyq_jax.tasks.pointmaze.maze import MAZE_UNIT, STEP_SCALE, get_maze
+from lazyq_jax.tasks.pointmaze.plots import rollouts_figure
 
 sys.path.insert(0, str(Path(__file__).parent))
 from pointmaze_walls import RADIUS, WALL_STEPS, Geodesic, value_of  # noqa: I001
@@ -427,6 +439,8 @@ def main() -> None:
     p.add_argument("--subgoal-steps", type=int, nargs="*", default=[],
                    help="also the two-level step (subgoal_policy) with each learned V, a subgoal this "
                         "many steps ahead on the neighbours' trajectories (HIQL's: 25)")
+    p.add_argument("--figures", default=None, metavar="DIR",
+                   help="draw each --subgoal-steps policy's rollouts into DIR")
     p.add_argument("--subgoal-only", action="store_true",
                    help="evaluate only the --subgoal-steps policies")
     p.add_argument("--skip-fixed-point", action="store_true")
@@ -502,8 +516,12 @@ def main() -> None:
         radius_probe(args, agent, data, seed, n, s, g, s2, geo, gamma, config, tables, results)
 
     # ---- the policy with each value table
+    if getattr(agent, "subgoal_steps", 0):  # the tabulated values need the one-level policy
+        nb_flat = dataclasses.replace(agent.config.neighbours, subgoal_steps=0)
+        agent = agents.make("lazy", dataclasses.replace(agent.config, neighbours=nb_flat), problem=agent.problem)
     base = agent.policies(loaded.states, sd.stacked, sd.n_valid)
-    evaluated = {} if args.skip_policy or args.query_goal_only or args.subgoal_only else others if args.only_values else tables
+    only_other = args.skip_policy or args.query_goal_only or args.subgoal_only
+    evaluated = {} if only_other else others if args.only_values else tables
     for name, y in evaluated.items():
         values = np.zeros(np.shape(base.values), np.float32)
         values[0, :n] = y
@@ -544,6 +562,11 @@ def main() -> None:
                                           policy, config, [seed])
                 label = f"{name}, subgoals {steps} steps ahead"
                 results["policy"][label] = ev.per_seed[0]["tasks"]
+                if args.figures:
+                    one = jax.tree.map(lambda x: x[0], ev.rollouts["tasks"])
+                    slug = "".join(c if c.isalnum() else "_" for c in label).strip("_")
+                    rollouts_figure(get_maze(config.collect.maze), one, ev.per_seed[0],
+                                    Path(args.figures) / f"{slug}_rollouts.png")
                 print(f"policy with {label}: {loaded.task.log_line(ev.per_seed[0])} "
                       f"({time.perf_counter() - t:.0f} s)", flush=True)
     out = Path(args.out) if args.out else Path(args.run_dir) / "oracle.json"

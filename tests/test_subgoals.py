@@ -1,6 +1,6 @@
 """``neighbours.subgoal_steps``: the lazy policy's two-level step (``lazy_subgoals``): the
 subgoal among the neighbours' trajectories against a NumPy brute force, the low level as
-Eq. (9)'s step towards it, the data it needs, and the whole task through the CLI."""
+Eq. (9)'s step towards it, the data it needs, and the one-level step through the CLI."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from conftest import pointmaze_round_trip
 
-from lazyq_jax import agents
+from lazyq_jax import agents, tasks
 from lazyq_jax.agents.base import Problem
 from lazyq_jax.config import ConfigError, NeighbourConfig
 from lazyq_jax.neighbours.query import query_policy
@@ -127,7 +127,9 @@ def test_subgoals_need_trajectories_whose_goals_are_states():
     agent.init(jax.random.PRNGKey(0), data)  # trajectories with state goals: accepted
 
 
-def test_subgoals_through_the_cli(tmp_path):
-    """The whole task at smoke scale with the two-level policy: trained, evaluated, reloaded,
-    acting."""
-    pointmaze_round_trip(tmp_path / "sub", "neighbours.subgoal_steps=5")
+def test_the_one_level_step_through_the_cli(tmp_path):
+    """The two-level step is the maze's default (every pointmaze CLI test runs it); the
+    paper's one-level step, with the tabulated values, at smoke scale: trained, evaluated,
+    reloaded, acting."""
+    assert tasks.preset("pointmaze", "paper").neighbours.subgoal_steps == 25
+    pointmaze_round_trip(tmp_path / "one", "neighbours.subgoal_steps=0")
