@@ -111,9 +111,11 @@ def lazy_subgoals(policy: LazyPolicy, rows: jax.Array, valid: jax.Array, s: jax.
     candidate of the largest ``V(w_j, g)``, or the goal ``g`` itself once it is as near as
     the candidates lead, ``V(s, g) >= mean_j V(s, w_j)`` (one V measures both, whatever the
     reward's scale; switching where no candidate is valued above ``s`` instead stops at V's
-    local maxima, the walls that the subgoals are there to go round).  The low level is then Eq. (9)'s step with the neighbours valued at ``w``
-    instead of ``g``: the greedy step compares values one step apart, where a learned V's
-    errors are as large as its differences; the subgoal compares values ``H`` steps apart.
+    local maxima, the walls that the subgoals are there to go round).  The low level is then
+    Eq. (9)'s step with the neighbours valued at ``w`` instead of ``g``: the greedy step
+    compares values one step apart, where a learned V's errors are as large as its
+    differences; the subgoal compares values ``H`` steps apart.  Where the query has no
+    neighbourhood (``valid`` all false) ``w`` is meaningless and the step is the zero action.
     """
     v = partial(policy.value_apply, policy.value_vars)
     ahead = policy.next_states[jnp.minimum(rows + policy.subgoal_steps - 1, policy.traj_last[rows])]
