@@ -51,7 +51,6 @@ accurate to a few steps).
     .venv/bin/python experiments/pointmaze_oracle.py runs/pm_lazy_s0 --skip-fixed-point \
         --subgoal-only --subgoal-steps 25 --out runs/pm_lazy_s0/oracle_sub.json
                                    # the two-level step (neighbours.subgoal_steps) on the run's V
-
 """
 
 from __future__ import annotations
@@ -520,8 +519,8 @@ def main() -> None:
         nb_flat = dataclasses.replace(agent.config.neighbours, subgoal_steps=0)
         agent = agents.make("lazy", dataclasses.replace(agent.config, neighbours=nb_flat), problem=agent.problem)
     base = agent.policies(loaded.states, sd.stacked, sd.n_valid)
-    only_other = args.skip_policy or args.query_goal_only or args.subgoal_only
-    evaluated = {} if only_other else others if args.only_values else tables
+    no_tables = args.skip_policy or args.query_goal_only or args.subgoal_only
+    evaluated = {} if no_tables else others if args.only_values else tables
     for name, y in evaluated.items():
         values = np.zeros(np.shape(base.values), np.float32)
         values[0, :n] = y
