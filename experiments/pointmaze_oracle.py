@@ -78,7 +78,7 @@ from lazyq_jax.local_model import (
 )
 from lazyq_jax.neighbours import find_neighbours
 from lazyq_jax.neighbours.query import query_policy, stack_policy_indices
-from lazyq_jax.policy import LazyPolicy, lazy_policy, policy_index
+from lazyq_jax.policy import LazyPolicy, policy_index
 from lazyq_jax.run import load_run
 from lazyq_jax.stats import format_ci, t_interval
 from lazyq_jax.targets import bootstrap_values, evaluate_in_batches, in_sample_target, lazy_target
@@ -531,13 +531,19 @@ def main() -> None:
         results["policy"][name] = res
         print(f"policy with {name}: {loaded.task.log_line(ev.per_seed[0])} "
               f"({time.perf_counter() - t:.0f} s)", flush=True)
-    if (args.query_goal or args.query_goal_only) and not args.skip_policy:
+    query_goal = (args.query_goal or args.query_goal_only) and not args.skip_policy
+    sg = None
+    if query_goal or (args.subgoal_steps and not args.skip_policy):
+        # the state-space neighbour index and the arrays both per-step policies read (one seed)
         nc = config.neighbours
         index = stack_policy_indices([policy_index(s, None, k=nc.k, radius_s=nc.radius_s,
                                                    radius_g=nc.radius_g, growth=nc.growth,
                                                    max_level=nc.max_level, n_valid=n)])
-        qg = {"index": index, "actions": jnp.asarray(np.asarray(data.a[:n]))[None],
-              "states": jnp.asarray(s)[None], "next": jnp.asarray(s2)[None]}
+        sg = {"index": index, "actions": jnp.asarray(np.asarray(data.a[:n]))[None],
+              "states": jnp.asarray(s)[None], "next": jnp.asarray(s2)[None],
+              "last": jnp.asarray(np.asarray(data.traj_last[:n]))[None]}
+    if query_goal:
+        qg = {k: v for k, v in sg.items() if k != "last"}
         for name, fn in learned.items():
             act_of = query_goal_act(fn, gamma, agent.problem.action_length, agent.problem.action_set)
             t = time.perf_counter()
@@ -546,19 +552,11 @@ def main() -> None:
             print(f"policy with {name} at the query's goal: {loaded.task.log_line(ev.per_seed[0])} "
                   f"({time.perf_counter() - t:.0f} s)", flush=True)
     if args.subgoal_steps and not args.skip_policy:
-        nc = config.neighbours
-        index = stack_policy_indices([policy_index(s, None, k=nc.k, radius_s=nc.radius_s,
-                                                   radius_g=nc.radius_g, growth=nc.growth,
-                                                   max_level=nc.max_level, n_valid=n)])
-        sg = {"index": index, "actions": jnp.asarray(np.asarray(data.a[:n]))[None],
-              "states": jnp.asarray(s)[None], "next": jnp.asarray(s2)[None],
-              "last": jnp.asarray(np.asarray(data.traj_last[:n]))[None]}
         for steps in args.subgoal_steps:
             for name, fn in learned.items():
                 policy = subgoal_policy(fn, sg, agent.problem.action_length, agent.problem.action_set, steps)
                 t = time.perf_counter()
-                ev = loaded.task.evaluate(lambda pol: (lambda key, s, g: lazy_policy(pol, key, s, g)[0]),
-                                          policy, config, [seed])
+                ev = loaded.task.evaluate(agent.act, policy, config, [seed])  # Eq. (9)'s lazy_policy
                 label = f"{name}, subgoals {steps} steps ahead"
                 results["policy"][label] = ev.per_seed[0]["tasks"]
                 if args.figures:
