@@ -1,6 +1,7 @@
 """Acting options of trained lazy Q runs against each other: the same checkpoints, datasets and
-evaluation episodes, only how the policy acts changes (``neighbours.no_model_action``,
-``neighbours.max_level``: options of the policy step, not of training).  Trains nothing.
+evaluation episodes, only how the policy acts changes (``lazyq_jax.config.POLICY_FIELDS``:
+options of the policy step, not of training; ``evaluate --set`` changes them for a whole
+run).  Trains nothing.
 
 For each value of ``--option`` every run directory's lazy Q is evaluated again by its task
 (the run's own evaluation keys); the table gives the mean [95 % CI] over all seeds of all
@@ -17,18 +18,16 @@ policy has no model that prefers an action and acts with the zero action) are co
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import time
 from pathlib import Path
 
 from lazyq_jax import tasks
-from lazyq_jax.config import override
+from lazyq_jax.config import POLICY_FIELDS
 from lazyq_jax.run import load_run
 from lazyq_jax.run.runner import open_existing
 from lazyq_jax.stats import format_ci, t_interval
 
-POLICY_OPTIONS = ("neighbours.no_model_action", "neighbours.max_level")
 
 
 def idle_steps(result: dict) -> int:
@@ -37,14 +36,12 @@ def idle_steps(result: dict) -> int:
 
 
 def evaluate_with(run_dir: Path, option: str, value: str) -> list[dict]:
-    """Every seed of ``run_dir``'s lazy Q evaluated with ``option=value``."""
-    loaded = load_run(run_dir, "lazy")
+    """Every seed of ``run_dir``'s lazy Q evaluated with ``option=value`` (an acting option:
+    the trained states are the run's)."""
+    loaded = load_run(run_dir, "lazy", overrides=[f"{option}={value}"])
     agent = loaded.agent
-    changed = override(loaded.config, [f"{option}={value}"])
-    # the option changes acting only: the trained states and the trainer stay as loaded
-    agent.config = dataclasses.replace(agent.config, neighbours=changed.neighbours)
     policies = agent.policies(loaded.states, loaded.data.stacked, loaded.data.n_valid)
-    ev = loaded.task.evaluate(agent.act, policies, changed, loaded.seeds)
+    ev = loaded.task.evaluate(agent.act, policies, loaded.config, loaded.seeds)
     rows = []
     for result in ev.per_seed:
         rates = loaded.task.seed_rates(result)
@@ -63,7 +60,7 @@ def stored_rows(run_dir: Path) -> list[dict]:
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("run_dirs", type=Path, nargs="+")
-    ap.add_argument("--option", choices=POLICY_OPTIONS, default="neighbours.no_model_action")
+    ap.add_argument("--option", choices=POLICY_FIELDS, default="neighbours.no_model_action")
     ap.add_argument("--values", nargs="+", default=["zero", "random"])
     ap.add_argument("--out", type=Path, help="JSON file (default: FIRST_RUN_DIR/policy_options.json)")
     args = ap.parse_args()

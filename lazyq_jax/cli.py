@@ -20,7 +20,7 @@ from pathlib import Path
 from lazyq_jax import tasks
 from lazyq_jax.agents import METHODS
 from lazyq_jax.checkpoint import CheckpointError
-from lazyq_jax.config import Config, ConfigError, override, to_dict
+from lazyq_jax.config import POLICY_FIELDS, Config, ConfigError, override, to_dict
 from lazyq_jax.data import DatasetError
 from lazyq_jax.parallel import (enable_compilation_cache, force_host_devices, is_main_process,
                                 make_mesh, maybe_initialize_distributed)
@@ -140,8 +140,10 @@ def main(argv: list[str] | None = None) -> int:
                                        "(re-runs the deterministic evaluation)"))
         p.add_argument("--run-dir", type=Path, required=True, help="a run directory of train or study")
         p.add_argument("--methods", default=None, help="only these methods (default: all the run's)")
-        p.add_argument("--set", action="append", metavar="eval.FIELD=VALUE",
-                       help="override an evaluation setting, e.g. eval.seed=3 (repeatable)")
+        p.add_argument("--set", action="append", metavar="FIELD=VALUE",
+                       help="override an evaluation setting (eval.*, e.g. eval.seed=3) or one of lazy Q's "
+                       f"policy settings ({', '.join(POLICY_FIELDS)}; the results name them) "
+                       "(repeatable)")
         p.add_argument("--no-figures", action="store_true",
                        help=argparse.SUPPRESS if name == "plot" else "only results.json")
         p.add_argument("--no-progress", action="store_true", help="no progress bars")

@@ -54,6 +54,11 @@ NO_MODEL_ACTIONS = ("zero", "random")
 BOOTSTRAP_GOALS = ("neighbour", "row")
 
 
+#: The settings of the lazy policy's step alone (acting, not training): ``evaluate --set``
+#: and :func:`lazyq_jax.load_run` may change them for a trained run.
+POLICY_FIELDS = ("neighbours.max_level", "neighbours.no_model_action", "neighbours.subgoal_steps")
+
+
 @dataclasses.dataclass(frozen=True)
 class NeighbourConfig:
     """Neighbourhoods B(s, g) of §V-A-2: ``|s - s0| < radius_s`` and ``|g - g0| < radius_g``

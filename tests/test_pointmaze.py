@@ -340,7 +340,8 @@ def test_a_cached_dataset_without_trajectories_is_collected_anew(tmp_path):
 
 def test_a_stored_evaluation_is_reused(tmp_path):
     """An ``eval.json`` written by the runner is found again for the same settings (pointmaze's
-    ``eval.tasks`` is a tuple, which JSON gives back as a list), and not for others."""
+    ``eval.tasks`` is a tuple, which JSON gives back as a list), and not for others; an
+    evaluation with other policy settings (``evaluate --set``) only for those."""
     config = tasks.preset("pointmaze", "paper")
     stamp = eval_stamp(config, 300, (0,))
     path = tmp_path / "eval.json"
@@ -349,3 +350,8 @@ def test_a_stored_evaluation_is_reused(tmp_path):
     assert stored_evaluation(path, eval_stamp(override(config, ["eval.tasks=[1,2]"]), 300, (0,))) is None
     assert stored_evaluation(path, eval_stamp(config, 200, (0,))) is None
     assert stored_evaluation(tmp_path / "none.json", stamp) is None
+    acting = {"neighbours.subgoal_steps": 0}
+    assert stored_evaluation(path, eval_stamp(config, 300, (0,), acting)) is None
+    write_json(path, {**eval_stamp(config, 300, (0,), acting), "per_seed": [{"seed": 0}]})
+    assert stored_evaluation(path, stamp) is None
+    assert stored_evaluation(path, eval_stamp(config, 300, (0,), acting)) == [{"seed": 0}]

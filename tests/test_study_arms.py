@@ -99,6 +99,15 @@ def test_evaluate_and_plot_reload_any_run(studies):
     assert gif.read_bytes()[:6] == b"GIF89a"
     missing = cli("evaluate", "--run-dir", str(studies / "arm"), "--methods", "naf:tau=0.1")
     assert missing.returncode == 2 and "no trained naf:tau=0.1 here" in missing.stderr
+    # lazy Q's policy settings: only where lazy Q is evaluated, and only where they apply
+    last = (studies / "arm" / "results.json").read_text()
+    other = cli("evaluate", "--run-dir", str(studies / "arm"), "--methods", "td3bc", "--set",
+                "neighbours.max_level=3")
+    assert other.returncode == 2 and "change lazy Q's policy" in other.stderr
+    subgoals = cli("evaluate", "--run-dir", str(studies / "arm"), "--methods", "lazy", "--set",
+                   "neighbours.subgoal_steps=5")
+    assert subgoals.returncode == 2 and "neighbours.subgoal_steps" in subgoals.stderr, subgoals.stderr[-2000:]
+    assert (studies / "arm" / "results.json").read_text() == last  # nothing written
 
 
 def test_static_resume_equals_the_uninterrupted_run(studies, tmp_path):

@@ -1,14 +1,17 @@
 """``neighbours.subgoal_steps``: the lazy policy's two-level step (``lazy_subgoals``): the
 subgoal among the neighbours' trajectories against a NumPy brute force, the low level as
-Eq. (9)'s step towards it, the data it needs, and the one-level step through the CLI."""
+Eq. (9)'s step towards it, the data it needs, the one-level step through the CLI and
+``evaluate --set`` switching a trained run's step."""
 
 from __future__ import annotations
+
+import json
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import pointmaze_round_trip
+from conftest import POINTMAZE_SMOKE, cli, pointmaze_round_trip
 
 from lazyq_jax import agents, tasks
 from lazyq_jax.agents.base import Problem
@@ -127,9 +130,33 @@ def test_subgoals_need_trajectories_whose_goals_are_states():
     agent.init(jax.random.PRNGKey(0), data)  # trajectories with state goals: accepted
 
 
-def test_the_one_level_step_through_the_cli(tmp_path):
+def test_the_one_level_step_and_evaluate_set_through_the_cli(tmp_path):
     """The two-level step is the maze's default (every pointmaze CLI test runs it); the
     paper's one-level step, with the tabulated values, at smoke scale: trained, evaluated,
-    reloaded, acting."""
+    reloaded, acting.  Then ``evaluate --set neighbours.subgoal_steps=25`` on its
+    checkpoint equals the run trained with the two-level step (the option changes acting
+    only, so training is the same program on the same inputs), and the results name the
+    setting; a plain ``evaluate`` gives the run's own policy back; settings of training
+    are refused."""
     assert tasks.preset("pointmaze", "paper").neighbours.subgoal_steps == 25
-    pointmaze_round_trip(tmp_path / "one", "neighbours.subgoal_steps=0")
+    one, two = tmp_path / "one", tmp_path / "two"
+    pointmaze_round_trip(one, "eval.max_steps=60", "neighbours.subgoal_steps=0")
+    args = ["train", "--task", "pointmaze", "--preset", "smoke", "--run-dir", str(two), "--no-progress"]
+    for a in [*POINTMAZE_SMOKE, "eval.max_steps=60"]:
+        args += ["--set", a]
+    out = cli(*args)
+    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
+    lazy = lambda d: json.loads((d / "results.json").read_text())["methods"]["lazy"]
+    own, trained_two = lazy(one), lazy(two)
+    assert own["per_seed"] != trained_two["per_seed"]  # the two policies act differently here
+    quiet = ["--methods", "lazy", "--no-figures", "--no-progress"]
+    out = cli("evaluate", "--run-dir", str(one), *quiet, "--set", "neighbours.subgoal_steps=25")
+    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
+    assert lazy(one)["per_seed"] == trained_two["per_seed"]
+    assert lazy(one)["acting"] == {"neighbours.subgoal_steps": 25} and "acting" not in trained_two
+    assert "| lazy (neighbours.subgoal_steps=25) |" in (one / "summary.md").read_text()
+    assert json.loads((one / "lazy" / "eval.json").read_text())["acting"] == {"neighbours.subgoal_steps": 25}
+    out = cli("evaluate", "--run-dir", str(one), *quiet)  # the run's own policy again
+    assert out.returncode == 0 and lazy(one) == {**own, "timings": lazy(one)["timings"]}
+    bad = cli("evaluate", "--run-dir", str(one), *quiet, "--set", "train.lr=0.1")
+    assert bad.returncode == 2 and "only eval.* settings and the lazy policy's" in bad.stderr

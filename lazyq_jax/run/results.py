@@ -50,7 +50,8 @@ def write_results(task: Task, run_dir: Path, seeds, summaries: list[dict], metho
     """``results.json``, ``summary.md`` and the comparison figures for ``methods`` (``{spec:
     {"per_seed_eval", "timings"}}``) merged into the ``earlier`` rows (their order kept, the
     new methods after them)."""
-    rows = {name: {**method_summary(task, m["per_seed_eval"]), "timings": m["timings"]}
+    rows = {name: {**method_summary(task, m["per_seed_eval"]), "timings": m["timings"],
+                   **({"acting": m["acting"]} if m.get("acting") else {})}
             for name, m in methods.items()}
     merged = {name: rows.get(name, old) for name, old in (earlier or {}).items()}
     results = {"version": RUN_VERSION, "task": task.name, "seeds": list(seeds), "ci": CI,
@@ -67,6 +68,12 @@ def write_results(task: Task, run_dir: Path, seeds, summaries: list[dict], metho
     return results
 
 
+def method_label(text: str, acting: dict | None) -> str:
+    """A method's name in logs and summaries, with the policy settings it was evaluated with
+    where they are not its run's, e.g. ``lazy (neighbours.subgoal_steps=0)``."""
+    return f"{text} ({', '.join(f'{k}={v}' for k, v in acting.items())})" if acting else text
+
+
 def summary_markdown(task: Task, results: dict) -> str:
     seeds = results["seeds"]
     keys = [(k, label) for k, label in task.rates
@@ -81,5 +88,6 @@ def summary_markdown(task: Task, results: dict) -> str:
         t = m["timings"]
         train = (f"{t['train_s']:.0f} s" if t.get("train_s") else "–") + (
             f" ({t['steps_per_s']:.0f} steps/s)" if t.get("steps_per_s") else "")
-        lines.append(f"| {name} | " + " | ".join(cell(k) for k, _ in keys) + f" | {train} |")
+        cells = " | ".join(cell(k) for k, _ in keys)
+        lines.append(f"| {method_label(name, m.get('acting'))} | {cells} | {train} |")
     return "\n".join(lines) + "\n"

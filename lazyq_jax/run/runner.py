@@ -23,6 +23,7 @@ import dataclasses
 import json
 import time
 import zlib
+from operator import attrgetter
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -36,12 +37,12 @@ from lazyq_jax import agents, tasks
 from lazyq_jax.agents import Agent, FixedPolicy, LazyConfig, Problem, Spec
 from lazyq_jax.agents.base import stack_trees
 from lazyq_jax.checkpoint import CheckpointError, checkpoint_writer, latest_step, load_latest_intact
-from lazyq_jax.config import Config, ConfigError, NeighbourConfig, override, to_dict
+from lazyq_jax.config import POLICY_FIELDS, Config, ConfigError, NeighbourConfig, override, to_dict
 from lazyq_jax.data import DatasetError
 from lazyq_jax.keys import purpose_key
 from lazyq_jax.parallel import is_main_process, make_mesh, over_seeds, put, replicated
 from lazyq_jax.plots import online_curve
-from lazyq_jax.run.results import earlier_methods, write_results
+from lazyq_jax.run.results import earlier_methods, method_label, write_results
 from lazyq_jax.run.rundir import (MethodSpec, RunDirError, append_jsonl, as_json, check_methods,
                                   check_seeds, field_defaults, keep_jsonl, open_method, open_run, parse_method,
                                   read_jsonl, write_json)
@@ -60,6 +61,8 @@ class Context:
     seeds: tuple[int, ...]
     mesh: Mesh | None
     progress: bool
+    #: the lazy policy's settings changed from the run's own (``evaluate --set``), by name
+    acting: dict = dataclasses.field(default_factory=dict)
 
     @property
     def online(self) -> OnlineRounds | None:
@@ -283,10 +286,12 @@ def _round_end(ctx: Context, agent: Agent, online: OnlineRounds, states, sd: See
 # ----------------------------------------------------------------------------- evaluation
 
 
-def eval_stamp(config: Config, block: int, seeds: Sequence[int]) -> dict:
+def eval_stamp(config: Config, block: int, seeds: Sequence[int], acting: dict | None = None) -> dict:
     """What an ``eval.json`` was made from, as JSON gives it back (tuples as lists), so that a
-    stored evaluation compares equal to the stamp of the same settings and is reused."""
-    return as_json({"eval": to_dict(config.eval), "block": int(block), "seeds": [int(s) for s in seeds]})
+    stored evaluation compares equal to the stamp of the same settings and is reused;
+    ``acting``: the policy settings changed from the run's own (:data:`POLICY_FIELDS`), if any."""
+    stamp = {"eval": to_dict(config.eval), "block": int(block), "seeds": [int(s) for s in seeds]}
+    return as_json({**stamp, "acting": acting} if acting else stamp)
 
 
 def stored_evaluation(path: Path, stamp: dict) -> list[dict] | None:
@@ -295,7 +300,8 @@ def stored_evaluation(path: Path, stamp: dict) -> list[dict] | None:
     if not path.exists():
         return None
     stored = json.loads(path.read_text())
-    return stored["per_seed"] if {k: stored.get(k) for k in stamp} == stamp else None
+    keys = {*stamp, "acting"}  # an evaluation with other policy settings is never reused
+    return stored["per_seed"] if all(stored.get(k) == stamp.get(k) for k in keys) else None
 
 
 def evaluate_method(ctx: Context, agent: Agent, spec: MethodSpec, method_dir: Path, states,
@@ -303,7 +309,7 @@ def evaluate_method(ctx: Context, agent: Agent, spec: MethodSpec, method_dir: Pa
     """The task's evaluation of every seed (``eval.json``), reused when it was made with the
     same evaluation settings from the same checkpoint; figures and an animation of seed 0."""
     path = method_dir / "eval.json"
-    stamp = eval_stamp(ctx.config, block, ctx.seeds)
+    stamp = eval_stamp(ctx.config, block, ctx.seeds, method_acting(ctx, spec))
     stored = None if force else stored_evaluation(path, stamp)
     if stored is not None:
         return stored
@@ -312,10 +318,11 @@ def evaluate_method(ctx: Context, agent: Agent, spec: MethodSpec, method_dir: Pa
     ev = ctx.task.evaluate(agent.act, policies, ctx.config, ctx.seeds)
     seconds = time.perf_counter() - t
     write_json(path, {**stamp, "seconds": round(seconds, 1), "per_seed": ev.per_seed})
+    label = method_label(spec.text, stamp.get("acting"))
     for result in ev.per_seed:
-        log(f"{spec.text}: seed {result['seed']}: {ctx.task.log_line(result)}")
+        log(f"{label}: seed {result['seed']}: {ctx.task.log_line(result)}")
     if figures and is_main_process():
-        out = ctx.run_dir / "figures" / spec.dirname
+        out = ctx.run_dir / "figures" / spec.dirname  # the figures show the latest evaluation
         rollouts = _seed_slice(ev.rollouts, 0)
         value_fn = agent.value_fn(_seed_slice(states, 0)) if hasattr(agent, "value_fn") else None
         ctx.task.figures(out, ev.per_seed[0], rollouts, ctx.config, value_fn)
@@ -412,6 +419,7 @@ def _run_method(ctx: Context, spec: MethodSpec, sd: SeedData, *, evaluate: bool,
     write_json(timing_path, timings)
     if not evaluate or not is_main_process():
         return {"timings": timings}
+    acting = method_acting(ctx, spec)
     blocks = ctx.online.total_blocks() if ctx.online is not None and spec.name == "lazy" else agent.blocks
     t = time.perf_counter()
     per_seed = evaluate_method(ctx, agent, spec, method_dir, states, sd, block=blocks,
@@ -419,7 +427,7 @@ def _run_method(ctx: Context, spec: MethodSpec, sd: SeedData, *, evaluate: bool,
     if time.perf_counter() - t > 1:
         timings["eval_s"] = round(time.perf_counter() - t, 1)
         write_json(timing_path, timings)
-    return {"per_seed_eval": per_seed, "timings": timings}
+    return {"per_seed_eval": per_seed, "timings": timings, **({"acting": acting} if acting else {})}
 
 
 def load_states(ctx: Context, agent: Agent, spec: MethodSpec, method_dir: Path, sd: SeedData):
@@ -439,18 +447,42 @@ def load_states(ctx: Context, agent: Agent, spec: MethodSpec, method_dir: Path, 
 
 
 def open_existing(run_dir: str | Path, overrides: Sequence[str] = ()) -> tuple[Config, list[int]]:
-    """The config (with ``eval.*`` overrides) and seeds of the run in ``run_dir``."""
+    """The config (with ``eval.*`` and :data:`POLICY_FIELDS` overrides) and seeds of the run
+    in ``run_dir``."""
     path = Path(run_dir) / "run.json"
     if not path.exists():
         old = (Path(run_dir) / "checkpoints").exists() or (Path(run_dir) / "study.json").exists()
         raise RunDirError(f"{run_dir}: " + ("a run of an older lazyq-jax; train it again"
                                             if old else "no run here (no run.json); train first"))
     stored = json.loads(path.read_text())
-    bad = [a for a in overrides if not a.strip().startswith("eval.")]
+    allowed = lambda a: a.strip().startswith("eval.") or a.split("=")[0].strip() in POLICY_FIELDS
+    bad = [a for a in overrides if not allowed(a)]
     if bad:
-        raise ConfigError(f"only eval.* settings can change for a trained run, got {bad}")
+        raise ConfigError(f"only eval.* settings and the lazy policy's {', '.join(POLICY_FIELDS)} can "
+                          f"change for a trained run, got {bad}; train anew (--run-dir elsewhere) to "
+                          "change anything else")
     config = override(tasks.config_from_dict(stored["config"]), list(overrides))
     return config, stored["seeds"]
+
+
+def policy_changes(trained: Config, config: Config) -> dict:
+    """The :data:`POLICY_FIELDS` in which ``config`` differs from the run's ``trained`` one."""
+    changed = [f for f in POLICY_FIELDS if attrgetter(f)(config) != attrgetter(f)(trained)]
+    return {f: attrgetter(f)(config) for f in changed}
+
+
+def method_acting(ctx: Context, spec: MethodSpec) -> dict:
+    """The policy settings a method is evaluated with that differ from its run's (lazy Q's
+    policy only: the other agents act by their own networks)."""
+    return ctx.acting if spec.name == "lazy" else {}
+
+
+def _open_trained(run_dir: str | Path, overrides: Sequence[str], progress: bool) -> Context:
+    """The context of a trained run with ``overrides`` (:func:`open_existing`) applied."""
+    config, seeds = open_existing(run_dir, overrides)
+    ctx = _context(config, run_dir, seeds, progress)
+    ctx.acting = policy_changes(open_existing(run_dir)[0], config)
+    return ctx
 
 
 def trained_methods(run_dir: Path) -> list[str]:
@@ -463,13 +495,17 @@ def evaluate_run(run_dir: str | Path, *, methods: Sequence[str] | None = None,
                  overrides: Sequence[str] = (), figures: bool = True, progress: bool = True) -> dict:
     """Re-evaluate a trained run from its checkpoints and data (nothing is retrained):
     every method (or ``methods``), with the run's evaluation settings changed by the
-    ``eval.*`` ``overrides``; writes ``eval.json``, ``results.json`` and the figures."""
-    config, seeds = open_existing(run_dir, overrides)
-    ctx = _context(config, run_dir, seeds, progress)
+    ``eval.*`` ``overrides`` and lazy Q's policy by :data:`POLICY_FIELDS` ones (e.g.
+    ``neighbours.subgoal_steps=0``: the one-level step of a two-level run; the results then
+    name the settings, ``"acting"``); writes ``eval.json``, ``results.json`` and the figures."""
+    ctx = _open_trained(run_dir, overrides, progress)
     names = list(methods) if methods else trained_methods(ctx.run_dir)
     if not names:
         raise RunDirError(f"{run_dir}: no trained method found")
     specs = check_methods(names)
+    if ctx.acting and not any(spec.name == "lazy" for spec in specs):
+        raise ConfigError(f"{', '.join(ctx.acting)} change lazy Q's policy; "
+                          f"{run_dir} evaluates {', '.join(names)} (add lazy to --methods)")
     for spec in specs:
         if not (ctx.run_dir / spec.dirname / "method.json").exists():
             raise RunDirError(f"{run_dir}: no trained {spec.text} here; its methods: "
@@ -510,11 +546,12 @@ class LoadedRun:
         return jax.jit(self.agent.act(_seed_slice(policy, 0)))
 
 
-def load_run(run_dir: str | Path, method: str = "lazy") -> LoadedRun:
+def load_run(run_dir: str | Path, method: str = "lazy", overrides: Sequence[str] = ()) -> LoadedRun:
     """Reload a trained method of any run directory (its newest checkpoint, which must be
-    finished), with the data it was trained on; nothing is retrained."""
-    config, seeds = open_existing(run_dir)
-    ctx = _context(config, run_dir, seeds, progress=False)
+    finished), with the data it was trained on; nothing is retrained.  ``overrides``:
+    ``eval.*`` and lazy Q's :data:`POLICY_FIELDS` settings, as for :func:`evaluate_run`."""
+    ctx = _open_trained(run_dir, overrides, progress=False)
+    config = ctx.config
     spec = parse_method(method)
     method_dir = ctx.run_dir / spec.dirname
     if not (method_dir / "method.json").exists():
@@ -527,14 +564,16 @@ def load_run(run_dir: str | Path, method: str = "lazy") -> LoadedRun:
     return LoadedRun(config, ctx.task, ctx.seeds, agent, load_states(ctx, agent, spec, method_dir, sd), sd)
 
 
-def load_policy(run_dir: str | Path, method: str = "lazy", seed: int | None = None):
+def load_policy(run_dir: str | Path, method: str = "lazy", seed: int | None = None,
+                overrides: Sequence[str] = ()):
     """The trained policy of ``method`` for ``seed`` (default: the run's first) in any run
-    directory: ``act(key, s[B, d_s], g) -> actions [B, n_a]``, jitted, for user code.
+    directory: ``act(key, s[B, d_s], g) -> actions [B, n_a]``, jitted, for user code;
+    ``overrides`` as for :func:`load_run` (e.g. ``["neighbours.subgoal_steps=0"]``).
 
     >>> act = lazyq_jax.load_policy("runs/paper")
     >>> actions = act(jax.random.PRNGKey(0), s, g)
     """
-    loaded = load_run(run_dir, method)
+    loaded = load_run(run_dir, method, overrides)
     if seed is not None and seed not in loaded.seeds:
         raise RunDirError(f"{run_dir} holds seeds {list(loaded.seeds)}, not {seed}")
     return loaded.policy(seed)
