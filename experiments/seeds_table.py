@@ -2,7 +2,8 @@
 added later, or one seed a directory so that every method runs unbatched as in
 ``train``): mean [95 % CI] over the seeds of the task's rates per method, and each
 method's paired difference to the first one (the seeds share their datasets and
-evaluation episodes).  Reads ``<run>/run.json`` and ``<run>/results.json``; trains
+evaluation episodes).  Lazy Q's rows name the policy settings they were evaluated with
+(the runs' own or ``evaluate --set``'s) and must agree on them.  Reads ``<run>/run.json`` and ``<run>/results.json``; trains
 nothing.  The runs must agree on every setting but the seed (``--same`` narrows the check
 to some sections, e.g. when each method was trained in its own run directory).
 
@@ -17,11 +18,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+from operator import attrgetter
 from pathlib import Path
 
 import numpy as np
 
 from lazyq_jax import tasks
+from lazyq_jax.config import POLICY_FIELDS
 from lazyq_jax.run.rundir import as_json
 from lazyq_jax.run.runner import open_existing
 from lazyq_jax.stats import format_ci, t_interval
@@ -29,14 +32,28 @@ from lazyq_jax.stats import format_ci, t_interval
 NOT_COMPARED = ("seed", "parallel")  # what may differ between the runs of one table
 
 
+def policy(run_dir: Path, method: dict) -> dict:
+    """Lazy Q's policy settings (``POLICY_FIELDS``) that produced a run's results: the run's
+    own, changed where ``evaluate --set`` changed them (the results' ``"acting"``)."""
+    config = open_existing(run_dir)[0]
+    return {**{f: attrgetter(f)(config) for f in POLICY_FIELDS}, **method.get("acting", {})}
+
+
 def per_seed_rows(run_dirs: list[Path], method: str) -> dict[int, dict]:
     """``seed -> {result keys, "train_s"}`` of ``method`` over the run directories; a seed
-    found twice is an error (which run would count?)."""
+    found twice is an error (which run would count?), and so are lazy Q's results of other
+    policy settings (e.g. one run evaluated with the two-level step, another without)."""
     rows: dict[int, dict] = {}
+    acting: dict[str, dict] = {}
     for run_dir in run_dirs:
         results = json.loads((run_dir / "results.json").read_text())
         if method not in results["methods"]:
             continue
+        if method.split(":")[0] == "lazy":
+            acting[str(run_dir)] = policy(run_dir, results["methods"][method])
+            if len({json.dumps(a, sort_keys=True) for a in acting.values()}) > 1:
+                raise SystemExit(f"{method}: the runs were evaluated with other policy settings: "
+                                 f"{acting}; evaluate them alike (evaluate --set)")
         timings = results["methods"][method].get("timings", {})
         for row in results["methods"][method]["per_seed"]:
             if row["seed"] in rows:
@@ -45,6 +62,16 @@ def per_seed_rows(run_dirs: list[Path], method: str) -> dict[int, dict]:
             spent = timings.get("train_s", float("nan")) + timings.get("prepare_s", 0.0)
             rows[row["seed"]] = {**row, "train_s": spent / len(results["seeds"])}
     return rows
+
+
+def policy_text(run_dirs: list[Path], method: str) -> str:
+    """Lazy Q's policy settings of the table's rows (all alike: :func:`per_seed_rows`)."""
+    for run_dir in run_dirs:
+        results = json.loads((run_dir / "results.json").read_text())
+        if method in results["methods"]:
+            settings = policy(run_dir, results["methods"][method])
+            return ", ".join(f"{k.split('.')[-1]}={v}" for k, v in settings.items())
+    return ""
 
 
 def check_settings(run_dirs: list[Path], same: list[str] | None) -> str:
@@ -83,7 +110,8 @@ def main() -> None:
         cells = [format_ci(t_interval([rows[s][k] for s in seeds])) if all(k in rows[s] for s in seeds) else "–"
                  for k, _ in task.rates]
         spent = np.mean([rows[s]["train_s"] for s in seeds])
-        print(f"| {m} | {','.join(map(str, seeds))} | " + " | ".join(cells) + f" | {spent:.0f} |")
+        label = m if m.split(":")[0] != "lazy" else f"{m} ({policy_text(args.run_dirs, m)})"
+        print(f"| {label} | {','.join(map(str, seeds))} | " + " | ".join(cells) + f" | {spent:.0f} |")
         for k, label in task.rates:
             if all(k in rows[s] for s in seeds):
                 print(f"    {label} per seed: " + " / ".join(f"{100 * rows[s][k]:.1f}" for s in seeds))
