@@ -18,13 +18,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-from operator import attrgetter
 from pathlib import Path
 
 import numpy as np
 
 from lazyq_jax import tasks
-from lazyq_jax.config import POLICY_FIELDS
+from lazyq_jax.config import policy_settings
 from lazyq_jax.run.rundir import as_json
 from lazyq_jax.run.runner import open_existing
 from lazyq_jax.stats import format_ci, t_interval
@@ -35,12 +34,12 @@ NOT_COMPARED = ("seed", "parallel")  # what may differ between the runs of one t
 def policy(run_dir: Path, method: dict) -> dict:
     """Lazy Q's policy settings (``POLICY_FIELDS``) that produced a run's results: the run's
     own, changed where ``evaluate --set`` changed them (the results' ``"acting"``)."""
-    config = open_existing(run_dir)[0]
-    return {**{f: attrgetter(f)(config) for f in POLICY_FIELDS}, **method.get("acting", {})}
+    return {**policy_settings(open_existing(run_dir)[0]), **method.get("acting", {})}
 
 
 def per_seed_rows(run_dirs: list[Path], method: str) -> dict[int, dict]:
-    """``seed -> {result keys, "train_s"}`` of ``method`` over the run directories; a seed
+    """``seed -> {result keys, "train_s"}`` of ``method`` over the run directories (lazy Q's
+    rows also ``"policy"``, the settings they were evaluated with: :func:`policy`); a seed
     found twice is an error (which run would count?), and so are lazy Q's results of other
     policy settings (e.g. one run evaluated with the two-level step, another without)."""
     rows: dict[int, dict] = {}
@@ -49,8 +48,10 @@ def per_seed_rows(run_dirs: list[Path], method: str) -> dict[int, dict]:
         results = json.loads((run_dir / "results.json").read_text())
         if method not in results["methods"]:
             continue
+        settings = {}
         if method.split(":")[0] == "lazy":
-            acting[str(run_dir)] = policy(run_dir, results["methods"][method])
+            settings = {"policy": policy(run_dir, results["methods"][method])}
+            acting[str(run_dir)] = settings["policy"]
             if len({json.dumps(a, sort_keys=True) for a in acting.values()}) > 1:
                 raise SystemExit(f"{method}: the runs were evaluated with other policy settings: "
                                  f"{acting}; evaluate them alike (evaluate --set)")
@@ -60,18 +61,8 @@ def per_seed_rows(run_dirs: list[Path], method: str) -> dict[int, dict]:
                 raise SystemExit(f"{method}: seed {row['seed']} is in two of the run directories "
                                  f"(again in {run_dir}); name each seed's run once")
             spent = timings.get("train_s", float("nan")) + timings.get("prepare_s", 0.0)
-            rows[row["seed"]] = {**row, "train_s": spent / len(results["seeds"])}
+            rows[row["seed"]] = {**row, "train_s": spent / len(results["seeds"]), **settings}
     return rows
-
-
-def policy_text(run_dirs: list[Path], method: str) -> str:
-    """Lazy Q's policy settings of the table's rows (all alike: :func:`per_seed_rows`)."""
-    for run_dir in run_dirs:
-        results = json.loads((run_dir / "results.json").read_text())
-        if method in results["methods"]:
-            settings = policy(run_dir, results["methods"][method])
-            return ", ".join(f"{k.split('.')[-1]}={v}" for k, v in settings.items())
-    return ""
 
 
 def check_settings(run_dirs: list[Path], same: list[str] | None) -> str:
@@ -110,7 +101,9 @@ def main() -> None:
         cells = [format_ci(t_interval([rows[s][k] for s in seeds])) if all(k in rows[s] for s in seeds) else "–"
                  for k, _ in task.rates]
         spent = np.mean([rows[s]["train_s"] for s in seeds])
-        label = m if m.split(":")[0] != "lazy" else f"{m} ({policy_text(args.run_dirs, m)})"
+        settings = rows[seeds[0]].get("policy")
+        short = ", ".join(f"{k.split('.')[-1]}={v}" for k, v in (settings or {}).items())
+        label = f"{m} ({short})" if settings else m
         print(f"| {label} | {','.join(map(str, seeds))} | " + " | ".join(cells) + f" | {spent:.0f} |")
         for k, label in task.rates:
             if all(k in rows[s] for s in seeds):

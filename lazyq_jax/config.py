@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from operator import attrgetter
 from typing import Any
 
 
@@ -57,6 +58,11 @@ BOOTSTRAP_GOALS = ("neighbour", "row")
 #: The settings of the lazy policy's step alone (acting, not training): ``evaluate --set``
 #: and :func:`lazyq_jax.load_run` may change them for a trained run.
 POLICY_FIELDS = ("neighbours.max_level", "neighbours.no_model_action", "neighbours.subgoal_steps")
+
+
+def policy_settings(config: "Config") -> dict:
+    """``config``'s :data:`POLICY_FIELDS`, by their dotted names."""
+    return {f: attrgetter(f)(config) for f in POLICY_FIELDS}
 
 
 @dataclasses.dataclass(frozen=True)

@@ -23,7 +23,6 @@ import dataclasses
 import json
 import time
 import zlib
-from operator import attrgetter
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -37,7 +36,8 @@ from lazyq_jax import agents, tasks
 from lazyq_jax.agents import Agent, FixedPolicy, LazyConfig, Problem, Spec
 from lazyq_jax.agents.base import stack_trees
 from lazyq_jax.checkpoint import CheckpointError, checkpoint_writer, latest_step, load_latest_intact
-from lazyq_jax.config import POLICY_FIELDS, Config, ConfigError, NeighbourConfig, override, to_dict
+from lazyq_jax.config import (POLICY_FIELDS, Config, ConfigError, NeighbourConfig, override,
+                              policy_settings, to_dict)
 from lazyq_jax.data import DatasetError
 from lazyq_jax.keys import purpose_key
 from lazyq_jax.parallel import is_main_process, make_mesh, over_seeds, put, replicated
@@ -467,8 +467,8 @@ def open_existing(run_dir: str | Path, overrides: Sequence[str] = ()) -> tuple[C
 
 def policy_changes(trained: Config, config: Config) -> dict:
     """The :data:`POLICY_FIELDS` in which ``config`` differs from the run's ``trained`` one."""
-    changed = [f for f in POLICY_FIELDS if attrgetter(f)(config) != attrgetter(f)(trained)]
-    return {f: attrgetter(f)(config) for f in changed}
+    before = policy_settings(trained)
+    return {f: v for f, v in policy_settings(config).items() if v != before[f]}
 
 
 def method_acting(ctx: Context, spec: MethodSpec) -> dict:
