@@ -158,6 +158,13 @@ class TrainConfig:
     row's squared error by ``tau`` where the target is at or above the value, ``1 - tau`` below
     (IQL's expectile regression, Kostrikov et al. 2022: V tends to the targets'
     ``tau``-expectile).
+    ``target_steps``: 1 (the paper's one-step Eq. 6) or ``H > 1``: each neighbour's
+    ``y_j`` is its row's ``h``-step return along its own trajectory, ``h <= H`` (to the
+    goal or the trajectory's end sooner), bootstrapped at the state reached
+    (:func:`lazyq_jax.targets.multi_step_transitions`); the fit, Eq. (7)-(8)'s maximum and
+    the policy are unchanged.  It needs trajectory data with state goals and a reward that
+    stays the same every step until the goal (OGBench's relabelled goal reaching), and
+    ``bootstrap_goal="neighbour"``.
     ``value_init``: where V starts (the last layer's initial bias; 0, the paper's, by
     default).  ``r_min / (1 - gamma)`` is a pessimistic start: V rises from below (on the
     maze it still ends above V* at the pairs across walls: ``docs/pointmaze.md``).
@@ -194,9 +201,14 @@ class TrainConfig:
     value_init: float = 0.0
     relabel_every: int = 0
     bootstrap_goal: str = "neighbour"
+    target_steps: int = 1
 
     def __post_init__(self) -> None:
         _counts(self, "relabel_every", minimum=0)
+        _counts(self, "target_steps")
+        _check(not (self.target_steps > 1 and self.bootstrap_goal != "neighbour"),
+               "TrainConfig: target_steps > 1 follows each neighbour's own trajectory at its own "
+               "goal; bootstrap_goal must stay 'neighbour'")
         _check(self.bootstrap_goal in BOOTSTRAP_GOALS,
                f"TrainConfig.bootstrap_goal must be 'neighbour' (V(s'_j, g_j), the paper's) or 'row' "
                f"(V(s'_j, g_i) at the row's goal), got {self.bootstrap_goal!r}")

@@ -79,6 +79,49 @@ def bootstrap_values(r, done, v_next, gamma):
     return r + gamma * jnp.where(done, 0.0, v_next)
 
 
+def multi_step_transitions(data: Transitions, steps: int, gamma: float
+                           ) -> tuple[Transitions, jax.Array]:
+    """Each row's ``h``-step transition along its own trajectory (``train.target_steps = H``):
+    ``(data with s_next and r replaced, discount [N])`` such that Eq. (6)'s bracket
+    ``r + discount (1 - done) V(s', g)`` is the row's ``h``-step return at its own goal,
+    ``sum_{t<h} gamma^t r + gamma^h V(s_{j+h}, g_j)``, the n-step return of Watkins (1989)
+    and Sutton & Barto (2018, §7.1) with the data's own later actions.
+
+    ``h = min(H, steps to the trajectory's last next state, steps to the goal)``: the path
+    stops where its state equals the row's goal (the relabelled goal-reaching rule of
+    OGBench, ``success = (goal index == row)``: that row is the terminal success) and where
+    the trajectory ends (``Transitions.traj_last``).  The reward is the row's own, the same
+    every step until the goal (OGBench's ``r = success - 1``): ``r (1 - gamma^h) / (1 -
+    gamma)``.  Terminal rows (``done``) keep ``r`` and ``s_next``.  Rows past a padded
+    dataset's end (``traj_last`` 0) get ``h = 1`` and their own ``s_next``.  ``steps = 1`` is
+    the data as they are with the scalar ``gamma``.  Traceable; the caller checks the data
+    (:meth:`lazyq_jax.agents.lazy.LazyAgent.check_target_steps`).
+    """
+    if steps == 1:
+        return data, jnp.float32(gamma)
+    if data.traj_last is None or data.g is None:
+        raise ValueError("multi-step targets need trajectory data with state goals "
+                         "(Transitions.traj_last and g [N, d_s])")
+    n = data.r.shape[0]
+    rows = jnp.arange(n, dtype=jnp.int32)
+    last = data.traj_last
+
+    def step(carry, t):  # the path's t-th next state, t = 1..steps
+        h, stopped = carry
+        at = rows + t - 1
+        x = data.s_next[jnp.minimum(at, last)]
+        stop = ~stopped & ((at >= last) | jnp.all(x == data.g, axis=-1))
+        return (jnp.where(stop, t, h), stopped | stop), None
+
+    init = (jnp.full((n,), steps, jnp.int32), jnp.zeros((n,), bool))
+    (h, _), _ = jax.lax.scan(step, init, jnp.arange(1, steps + 1, dtype=jnp.int32))
+    gamma = jnp.float32(gamma)  # so that h = 1 gives the one-step r and gamma bit for bit
+    discount = gamma ** h.astype(jnp.float32)
+    s_next = jnp.where(data.done[:, None], data.s_next, data.s_next[rows + h - 1])
+    r = jnp.where(data.done, data.r, data.r * ((1.0 - discount) / (1.0 - gamma)))
+    return data.replace(s_next=s_next, r=r), jnp.where(data.done, gamma, discount)
+
+
 @struct.dataclass
 class TargetDiagnostics:
     """Per-transition diagnostics of :func:`dataset_targets`."""

@@ -43,7 +43,7 @@ from lazyq_jax.local_model import expectile_loss, safe_norm
 from lazyq_jax.networks import ValueNetwork, goal_kind
 from lazyq_jax.parallel import AXIS, check_divisible, mesh_size
 from lazyq_jax.targets import (bootstrap_table, double_dqn_target, in_sample_target, lazy_target,
-                               local_fits)
+                               local_fits, multi_step_transitions)
 from lazyq_jax.types import Transitions
 
 
@@ -200,7 +200,9 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
         return lambda s, g: network.apply(variables, s, g, train=False)
 
     def fits(state: TrainState, data: Transitions, idx: jax.Array, weights):
-        return local_fits(value_fn(state), data, idx, gamma=config.gamma,
+        # With target_steps = H > 1 each neighbour's bracket is its h-step return (h <= H).
+        data, gamma = multi_step_transitions(data, config.target_steps, config.gamma)
+        return local_fits(value_fn(state), data, idx, gamma=gamma,
                           batch_size=config.target_batch_size, mesh=mesh, state_offsets=state_offsets,
                           goal_offsets=goal_offsets, weights=weights,
                           in_sample=config.target_max == "expectile",
@@ -269,7 +271,8 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
         key, k_epochs = jax.random.split(state.key)
         # The target network: the parameters frozen at the start of the cycle (Eq. 11-12).
         if config.target_max == "next":  # the ablation without the lazy model: own s'
-            y = bootstrap_table(value_fn(state), data, config.gamma, config.target_batch_size, mesh)
+            y = bootstrap_table(value_fn(state), *multi_step_transitions(data, config.target_steps, config.gamma),
+                                config.target_batch_size, mesh)
             alpha = beta = y_nb = None
             dqn = (y, jnp.zeros(y.shape, bool))
         else:

@@ -10,7 +10,9 @@ action value model Q(s, a, g) ~ alpha + beta.a (Eq. 4), behind the agent interfa
 * ``run_block``: one cycle of fitted value iteration (:func:`lazyq_jax.train.make_train`):
   targets of Eq. (11) (or Eq. 13 with ``train.double_dqn``; ``train.target_max`` moves
   Eq. 7's maximum to the neighbours' actions or an in-sample expectile;
-  ``train.bootstrap_goal="row"`` values the neighbours at the row's goal) from the network
+  ``train.bootstrap_goal="row"`` values the neighbours at the row's goal;
+  ``train.target_steps`` takes each neighbour's multi-step return along its trajectory,
+  :func:`lazyq_jax.targets.multi_step_transitions`) from the network
   frozen at the start of the cycle, then ``train.epochs`` epochs of Adam on Eq. (10).
 * ``act``: Eq. (9), the greedy action of the local fit over the dataset
   (:func:`lazyq_jax.policy.lazy_policy`); where the local model prefers no action (no
@@ -104,6 +106,7 @@ class LazyAgent(Agent):
     def init(self, key, data: Transitions):
         self.check_k(data)
         self.check_subgoals(data)
+        self.check_target_steps(data)
         if self.config.train.relabel_every:
             uses_trajectories("trajectories", data, "lazy Q's train.relabel_every")
         return self.trainer.init(key, data)
@@ -122,6 +125,42 @@ class LazyAgent(Agent):
             raise ValueError(f"neighbours.k={nb.k} is below the {coef} coefficients of the local "
                              f"model {nb.local_model!r} on these data; raise k or choose a smaller "
                              "local_model")
+
+    def check_target_steps(self, data: Transitions, n_valid: int | None = None) -> None:
+        """``ConfigError`` when ``train.target_steps > 1`` cannot apply to ``data``: the
+        multi-step targets follow the rows' trajectories at the rows' goals
+        (:func:`lazyq_jax.targets.multi_step_transitions`), so they need trajectories, goals
+        that are states, terminal rows whose state is their goal, and one reward for every
+        other row.  (A path also stops at a state equal to its goal in a row that is not
+        terminal: a duplicate of the goal's state, 1 row in 1M on the maze's data.)  With ``n_valid`` (concrete data) the values of the first
+        ``n_valid`` rows are checked too, else only the shapes."""
+        steps = self.config.train.target_steps
+        if steps == 1:
+            return
+        fix = "set train.target_steps=1"
+        if data.traj_last is None:
+            raise ConfigError("train.target_steps > 1 follows the data's trajectories, but these data "
+                              f"have none (Transitions.traj_last): {fix}")
+        if data.g is None or np.ndim(data.g) != np.ndim(data.s) or np.shape(data.g)[-1] != np.shape(data.s)[-1]:
+            raise ConfigError("train.target_steps > 1 stops each path where its state is the row's goal, so "
+                              f"the goals must be states (g[N, {np.shape(data.s)[-1]}]); these data have "
+                              f"goals {None if data.g is None else tuple(np.shape(data.g))}: {fix}")
+        if n_valid is None:
+            return
+        n = int(n_valid)
+        s, g = np.asarray(data.s[:n]), np.asarray(data.g[:n])
+        r, done = np.asarray(data.r[:n]), np.asarray(data.done[:n])
+        off_goal = done & ~np.all(s == g, axis=-1)
+        if np.any(off_goal):
+            bad = int(np.flatnonzero(off_goal)[0])
+            raise ConfigError(f"train.target_steps > 1 needs terminal rows whose state is their goal "
+                              f"(OGBench's relabelled goal reaching); row {bad} is terminal with the state "
+                              f"{s[bad].tolist()} and the goal {g[bad].tolist()}: {fix}")
+        step_rewards = np.unique(r[~done])
+        if step_rewards.size > 1:
+            raise ConfigError("train.target_steps > 1 needs one reward for every step before the goal "
+                              f"(OGBench's -1); these rows have {step_rewards.size} different ones "
+                              f"(e.g. {step_rewards[:3].tolist()}): {fix}")
 
     def check_subgoals(self, data: Transitions) -> None:
         """``ConfigError`` when ``neighbours.subgoal_steps`` cannot apply to ``data``: its
@@ -166,6 +205,7 @@ class LazyAgent(Agent):
         if self.config.train.resample_neighbours and block > 0:
             key = jax.random.fold_in(purpose_key(seed, "resample"), block)
         goals = self.goals_for(seed, data, n_valid, block)
+        self.check_target_steps(data.replace(**goals), n_valid)
         data_g = None if self.row_goal else goals.get("g", data.g)  # row goals: state space only
         nc, n = self.config.neighbours, int(n_valid)
         x = self.search_space(data.s)
