@@ -10,7 +10,9 @@ Two measurements on one trained lazy run (its first seed, its data, its neighbou
   ``V`` does not, the local policy is not what bounds lazy Q: its value is.
 * **Fixed point.**  The targets of Eq. (8) (the fit over each row's neighbourhood, max over
   the box, clipped) computed from ``V*`` and from the trained ``V``, against ``V*`` at the
-  rows, over all rows with the goal apart from the state and over the wall pairs
+  rows (with the brackets of the run's ``train.target_steps``, or ``--target-steps``: each
+  row's multi-step return along its trajectory), over all rows with the goal apart from the
+  state and over the wall pairs
   (pointmaze_walls.py): the mean error of ``T V*`` is the operator's own bias (Eq. 7's max,
   the linear model across walls-shaped values), that of ``T V`` against ``V`` is how far
   training is from its fixed point.
@@ -81,7 +83,8 @@ from lazyq_jax.neighbours.query import query_policy, stack_policy_indices
 from lazyq_jax.policy import LazyPolicy, policy_index
 from lazyq_jax.run import load_run
 from lazyq_jax.stats import format_ci, t_interval
-from lazyq_jax.targets import bootstrap_values, evaluate_in_batches, in_sample_target, lazy_target
+from lazyq_jax.targets import (bootstrap_values, evaluate_in_batches, in_sample_target, lazy_target,
+                               multi_step_transitions)
 from lazyq_jax.tasks.pointmaze.maze import MAZE_UNIT, STEP_SCALE, get_maze
 from lazyq_jax.tasks.pointmaze.plots import rollouts_figure
 
@@ -423,6 +426,9 @@ def main() -> None:
                    help="only print the policy table over seeds of these oracle.json files")
     p.add_argument("--method", default="lazy")
     p.add_argument("--pairs", type=int, default=200000, help="rows scored for the fixed point")
+    p.add_argument("--target-steps", type=int, default=None,
+                   help="the fixed point's brackets as train.target_steps = H (each row's multi-step "
+                        "return along its trajectory); default: the run's own")
     p.add_argument("--values", nargs="*", default=[], metavar="RUN_DIR:METHOD",
                    help="also the policy with other trained values (e.g. GCIVL's V of the same seed)")
     p.add_argument("--only-values", action="store_true",
@@ -481,8 +487,11 @@ def main() -> None:
     v_trained = agent.value_fn(loaded.state())
     learned = {} if args.only_values else {"trained V": v_trained}  # value functions for --query-goal
 
-    def at_next(v):  # V(s'_j, g_j) of every row, in chunks
-        return np.asarray(evaluate_in_batches(v, jnp.asarray(s2), jnp.asarray(g), 65536))
+    def at_next_of(v, states):  # V(states_j, g_j) of every row, in chunks
+        return np.asarray(evaluate_in_batches(v, jnp.asarray(states), jnp.asarray(g), 65536))
+
+    def at_next(v):  # V(s'_j, g_j) of every row
+        return at_next_of(v, s2)
 
     v_net_next = at_next(v_trained)
     tables = {"V* (walls)": table(v_star_next), "V_line (no walls)": table(v_line_next),
@@ -504,9 +513,19 @@ def main() -> None:
     tables.update(others)
     results: dict = {"run_dir": args.run_dir, "seed": seed, "policy": {}, "fixed_point": {}}
 
-    # ---- the fixed point: T V at the rows (the run's neighbourhoods of block 0)
+    # ---- the fixed point: T V at the rows (the run's neighbourhoods of block 0), with the
+    # brackets of the run's train.target_steps (or --target-steps)
     if not args.skip_fixed_point:
-        fixed_point(args, agent, data, seed, n, s, g, geo, gamma, config, loaded, tables, results)
+        steps = config.train.target_steps if args.target_steps is None else args.target_steps
+        fp_tables = tables
+        if steps > 1:
+            paths, disc = multi_step_transitions(jax.tree.map(lambda x: x[:n], data), steps, gamma)
+            s2h = np.asarray(paths.s_next)
+            fp_tables = {name: np.asarray(paths.r + disc * jnp.where(paths.done, 0.0, jnp.asarray(v)))
+                         for name, v in (("V* (walls)", value_of(geo.length(s2h, g), gamma).astype(np.float32)),
+                                         ("trained V", at_next_of(v_trained, s2h)))}
+        results["fixed_point"]["target_steps"] = steps
+        fixed_point(args, agent, data, seed, n, s, g, geo, gamma, config, loaded, fp_tables, results)
 
     if args.probe_k:
         noise_probe(args, agent, data, seed, n, s, g, geo, gamma, config, v_star_next, results)

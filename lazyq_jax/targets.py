@@ -97,8 +97,8 @@ def multi_step_transitions(data: Transitions, steps: int, gamma: float
     the data as they are with the scalar ``gamma``.  Traceable; the caller checks the data
     (:meth:`lazyq_jax.agents.lazy.LazyAgent.check_target_steps`).
     """
-    if steps == 1:
-        return data, jnp.float32(gamma)
+    if steps == 1:  # the paper's program, unchanged
+        return data, gamma
     if data.traj_last is None or data.g is None:
         raise ValueError("multi-step targets need trajectory data with state goals "
                          "(Transitions.traj_last and g [N, d_s])")

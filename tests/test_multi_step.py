@@ -92,7 +92,7 @@ def test_one_step_rows_are_the_data_bit_for_bit():
     gets exactly its own ``r`` and ``gamma`` (so the default changes nothing)."""
     data = _relabelled()
     same, gamma = multi_step_transitions(data, 1, GAMMA)
-    assert same is data and float(gamma) == np.float32(GAMMA)
+    assert same is data and gamma == GAMMA
     got, disc = multi_step_transitions(data, 5, GAMMA)
     last, rows = np.asarray(data.traj_last), np.arange(data.size)
     one = (last == rows) & ~np.asarray(data.done)  # the trajectory ends after this row
