@@ -206,9 +206,6 @@ class TrainConfig:
     def __post_init__(self) -> None:
         _counts(self, "relabel_every", minimum=0)
         _counts(self, "target_steps")
-        _check(not (self.target_steps > 1 and self.bootstrap_goal != "neighbour"),
-               "TrainConfig: target_steps > 1 follows each neighbour's own trajectory at its own "
-               "goal; bootstrap_goal must stay 'neighbour'")
         _check(self.bootstrap_goal in BOOTSTRAP_GOALS,
                f"TrainConfig.bootstrap_goal must be 'neighbour' (V(s'_j, g_j), the paper's) or 'row' "
                f"(V(s'_j, g_i) at the row's goal), got {self.bootstrap_goal!r}")

@@ -142,6 +142,10 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
     if goal_offsets and config.bootstrap_goal == "row":
         raise ConfigError("train.bootstrap_goal='row' values every neighbour at the row's goal: there are "
                           "no goal offsets to fit; use neighbours.local_model='action+state'")
+    if config.target_steps > 1 and config.bootstrap_goal != "neighbour":  # checked here: --set order
+        raise ConfigError(f"train.target_steps={config.target_steps} follows each neighbour's own "
+                          "trajectory at its own goal, so train.bootstrap_goal must stay 'neighbour'; "
+                          f"set train.target_steps=1 to use bootstrap_goal={config.bootstrap_goal!r}")
     if action_set not in ("ball", "box"):
         raise ValueError(f"action_set must be 'ball' or 'box', got {action_set!r}")
     scale = np.asarray(state_scale, np.float64)

@@ -160,8 +160,8 @@ def test_a_corridor_reaches_its_optimal_values():
 def test_settings_and_data_it_refuses():
     with pytest.raises(ConfigError, match="target_steps must be an integer >= 1"):
         TrainConfig(target_steps=0)
-    with pytest.raises(ConfigError, match="bootstrap_goal must stay 'neighbour'"):
-        TrainConfig(target_steps=3, bootstrap_goal="row")
+    with pytest.raises(ConfigError, match="bootstrap_goal must stay 'neighbour'; set train.target_steps=1"):
+        make_train(TrainConfig(target_steps=3, bootstrap_goal="row"), 1.0)
     maze = Problem(action_length=1.0, action_set="box", state_goal_reward=True)
     cfg = agents.LazyConfig(train=TrainConfig(target_steps=3, width=8, depth=2),
                             neighbours=NeighbourConfig(k=6, local_model="action+state"))

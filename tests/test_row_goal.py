@@ -135,8 +135,9 @@ def test_row_goal_is_refused_where_it_is_not_exact():
 
 
 def test_row_goal_through_the_cli(tmp_path):
-    """The whole task at smoke scale with row goals: trained, evaluated, reloaded, acting."""
-    pointmaze_round_trip(tmp_path / "row", "train.bootstrap_goal=row",
+    """The whole task at smoke scale with row goals (and one-step targets, which row goals
+    need: the maze's default takes 10): trained, evaluated, reloaded, acting."""
+    pointmaze_round_trip(tmp_path / "row", "train.bootstrap_goal=row", "train.target_steps=1",
                          "neighbours.local_model=action+state")
     cfg = override(tasks.preset("pointmaze", "smoke"), ["train.bootstrap_goal=row"])
     assert cfg.train.bootstrap_goal == "row"
