@@ -99,27 +99,38 @@ def multi_step_transitions(data: Transitions, steps: int, gamma: float
     """
     if steps == 1:  # the paper's program, unchanged
         return data, gamma
-    if data.traj_last is None or data.g is None:
+    rows = jnp.arange(data.r.shape[0], dtype=jnp.int32)
+    s_next, r, discount = multi_step_rows(data, rows, data.g, data.r, data.done, steps, gamma)
+    return data.replace(s_next=s_next, r=r), discount
+
+
+def multi_step_rows(data: Transitions, rows: jax.Array, g: jax.Array, r: jax.Array,
+                    done: jax.Array, steps: int, gamma: float
+                    ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """:func:`multi_step_transitions` for the rows ``rows [B]`` of ``data`` with the goals
+    ``g [B, d_s]``, rewards ``r [B]`` and ``done [B]`` given (a goal-conditioned agent's fresh
+    goals): ``(s_next [B, d_s], r [B], discount [B])`` of each row's path, ``h <= steps``
+    steps along its trajectory, stopped at a state equal to its goal or the trajectory's
+    end."""
+    if data.traj_last is None or g is None or g.ndim != 2:
         raise ValueError("multi-step targets need trajectory data with state goals "
                          "(Transitions.traj_last and g [N, d_s])")
-    n = data.r.shape[0]
-    rows = jnp.arange(n, dtype=jnp.int32)
-    last = data.traj_last
+    last = data.traj_last[rows]
 
     def step(carry, t):  # the path's t-th next state, t = 1..steps
         h, stopped = carry
         at = rows + t - 1
         x = data.s_next[jnp.minimum(at, last)]
-        stop = ~stopped & ((at >= last) | jnp.all(x == data.g, axis=-1))
+        stop = ~stopped & ((at >= last) | jnp.all(x == g, axis=-1))
         return (jnp.where(stop, t, h), stopped | stop), None
 
-    init = (jnp.full((n,), steps, jnp.int32), jnp.zeros((n,), bool))
+    init = (jnp.full(rows.shape, steps, jnp.int32), jnp.zeros(rows.shape, bool))
     (h, _), _ = jax.lax.scan(step, init, jnp.arange(1, steps + 1, dtype=jnp.int32))
     gamma = jnp.float32(gamma)  # so that h = 1 gives the one-step r and gamma bit for bit
     discount = gamma ** h.astype(jnp.float32)
-    s_next = jnp.where(data.done[:, None], data.s_next, data.s_next[rows + h - 1])
-    r = jnp.where(data.done, data.r, data.r * ((1.0 - discount) / (1.0 - gamma)))
-    return data.replace(s_next=s_next, r=r), jnp.where(data.done, gamma, discount)
+    s_next = jnp.where(done[:, None], data.s_next[rows], data.s_next[rows + h - 1])
+    r = jnp.where(done, r, r * ((1.0 - discount) / (1.0 - gamma)))
+    return s_next, r, jnp.where(done, gamma, discount)
 
 
 @struct.dataclass

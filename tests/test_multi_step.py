@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from lazyq_jax import agents
+from lazyq_jax.agents import gcivl
 from lazyq_jax.agents.base import Problem
 from lazyq_jax.config import ConfigError, NeighbourConfig, TrainConfig
 from lazyq_jax.targets import lazy_target, local_fits, multi_step_transitions
@@ -180,3 +181,42 @@ def test_settings_and_data_it_refuses():
     with pytest.raises(ConfigError, match="one reward for every step"):
         agent.check_target_steps(data.replace(r=data.r.at[1].set(-2.0)), data.size)
     agent.check_target_steps(data.replace(r=data.r.at[1].set(-2.0)), 1)  # rows past n_valid: not read
+
+
+def test_gcivl_control_takes_the_paths_to_its_fresh_goals():
+    """GCIVL's ``target_steps`` (a control for lazy Q's option): the value rows' next states,
+    returns and discounts are their paths to the goals drawn for them (against the Python
+    walk), the actor rows stay one-step, the value loss reads the per-row discount (against
+    ``ivl_value_loss`` with it), and one training block runs; data without trajectories are
+    refused."""
+    data = _relabelled(lengths=(7, 9, 12, 8, 10, 6, 11, 9), seed=3)
+    problem = Problem(action_length=1.0, action_set="box", state_goal_reward=True)
+    cfg = gcivl.GCIVLConfig(steps=4, batch_size=32, width=8, depth=2, blocks=2, target_steps=6)
+    agent = gcivl.make(cfg, problem)
+    rows = jax.random.randint(jax.random.PRNGKey(4), (32,), 0, data.size)
+    value, actor, disc = agent.batch(data, rows, jax.random.PRNGKey(5), jnp.int32(data.size))
+    one_value, one_actor = gcivl.make(dataclasses.replace(cfg, target_steps=1), problem).batch(
+        data, rows, jax.random.PRNGKey(5), jnp.int32(data.size))
+    for name in ("s", "g", "done", "a"):  # the same goals drawn, only the paths added
+        np.testing.assert_array_equal(getattr(value, name), getattr(one_value, name))
+    np.testing.assert_array_equal(actor.s_next, one_actor.s_next)
+    picked = Transitions(s=data.s, a=data.a, s_next=data.s_next, r=data.r, g=data.g, done=data.done,
+                         traj_last=data.traj_last)
+    for i, j in enumerate(np.asarray(rows)):  # each row walked with its drawn goal
+        one = picked.replace(g=picked.g.at[j].set(value.g[i]), r=picked.r.at[j].set(one_value.r[i]),
+                             done=picked.done.at[j].set(one_value.done[i]))
+        want_s, want_r, want_d = _walk(one, 6, cfg.gamma)
+        np.testing.assert_array_equal(value.s_next[i], want_s[j])
+        np.testing.assert_allclose(value.r[i], want_r[j], rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(disc[i], want_d[j], rtol=1e-6)
+    assert np.sum(np.abs(np.asarray(disc) - cfg.gamma) > 1e-6) > 8  # paths longer than one step
+    state = agent.init(jax.random.PRNGKey(0), data)
+    params, target = state.model["params"], state.model["target_value"]
+    loss, _ = agent.value_loss(params, target, value, disc)
+    want, _ = gcivl.ivl_value_loss(agent.values(target, value.s_next, value.g), agent.values(target, value.s, value.g),
+                                   agent.values(params["value"], value.s, value.g), value, disc, cfg.expectile)
+    np.testing.assert_allclose(loss, want, rtol=1e-6)
+    state, metrics = jax.jit(agent.run_block)(state, data)
+    assert np.all(np.isfinite(np.asarray(metrics["value_loss"])))
+    with pytest.raises(ConfigError, match="target_steps=6 follows each row's trajectory"):
+        agent.batch(data.replace(traj_last=None), rows, jax.random.PRNGKey(5), jnp.int32(data.size))

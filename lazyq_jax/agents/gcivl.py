@@ -85,8 +85,10 @@ from lazyq_jax.agents.common import (
     select,
 )
 from lazyq_jax.agents.gcbc import actor_mean, actor_net, actor_stats, value_net
-from lazyq_jax.agents.goals import check_goal_source, minibatches
+from lazyq_jax.agents.goals import check_goal_source, minibatches, uses_trajectories
+from lazyq_jax.config import ConfigError
 from lazyq_jax.local_model import expectile_loss
+from lazyq_jax.targets import multi_step_rows
 from lazyq_jax.types import Transitions
 
 
@@ -123,7 +125,12 @@ class GCIVLConfig(BaselineConfig):
     fresh value and actor goals from the trajectories when the data have them
     (``Transitions.traj_last``, :mod:`lazyq_jax.agents.goals`), else the rows' own goals;
     ``"trajectories"`` (required) or ``"rows"``.  ``target_period``: 0 (OGBench's) the
-    Polyak target, ``P > 0`` a hard copy every ``P`` steps (the module docstring)."""
+    Polyak target, ``P > 0`` a hard copy every ``P`` steps (the module docstring).
+    ``target_steps``: 1 (OGBench's) or ``H > 1``, not OGBench's, a control for lazy Q's
+    ``train.target_steps``: the value loss's ``r + gamma m V^t(s', g)`` becomes each value
+    row's return over up to ``H`` steps of its own trajectory at its fresh goal,
+    bootstrapped where the path stopped (:func:`lazyq_jax.targets.multi_step_rows`); the
+    actor's advantage stays one step.  Needs OGBench's goals from the trajectories."""
 
     batch_size: int = 1024
     learning_rate: float = 3e-4
@@ -137,11 +144,13 @@ class GCIVLConfig(BaselineConfig):
     layer_norm: bool = True
     goals: str = "auto"
     target_period: int = 0
+    target_steps: int = 1
 
     def __post_init__(self) -> None:
         super().__post_init__()
         check_range(self, "tau", 0.0, 1.0, lo_open=True)
         check_int(self, "target_period", 0)
+        check_int(self, "target_steps", 1)
         check_range(self, "expectile", 0.0, 1.0, lo_open=True, hi_open=True)
         check_range(self, "alpha", 0.0, math.inf)
         check_range(self, "max_weight", 0.0, math.inf, lo_open=True)
@@ -171,15 +180,30 @@ class GCIVL(Baseline):
         """``[2, B]``: both members of the twin ``V(s, g)``."""
         return apply_ensemble(self.value_net, value, observe(self.problem, s, g))[..., 0]
 
-    def value_loss(self, params: Any, target_value: Any, b: Transitions):
+    def value_loss(self, params: Any, target_value: Any, b: Transitions, discount=None):
+        """``discount [B]``: each row's ``gamma^h`` with ``target_steps`` (else ``gamma``)."""
         return ivl_value_loss(self.values(target_value, b.s_next, b.g),
                               self.values(target_value, b.s, b.g),
                               self.values(params["value"], b.s, b.g),
-                              b, self.config.gamma, self.config.expectile)
+                              b, self.config.gamma if discount is None else discount,
+                              self.config.expectile)
 
     def batch(self, data, rows, key, n_valid):
-        """``(value batch, actor batch)``: OGBench's goals from the trajectories, or the rows'."""
-        return minibatches(self.config.goals, data, rows, key, n_valid, self.config.gamma, self.name)
+        """``(value batch, actor batch)``: OGBench's goals from the trajectories, or the rows';
+        with ``target_steps > 1`` also the value rows' discounts, their ``s_next`` and ``r``
+        those of the paths."""
+        cfg = self.config
+        value, actor = minibatches(cfg.goals, data, rows, key, n_valid, cfg.gamma, self.name)
+        if cfg.target_steps == 1:
+            return value, actor
+        if not uses_trajectories(cfg.goals, data, self.name):
+            raise ConfigError(f"{self.name}: target_steps={cfg.target_steps} follows each row's "
+                              "trajectory to its fresh goal, so it needs goals drawn from the "
+                              "trajectories (trajectory data with state goals, goals != 'rows'); "
+                              "set target_steps=1")
+        s_next, r, discount = multi_step_rows(data, rows, value.g, value.r, value.done,
+                                              cfg.target_steps, cfg.gamma)
+        return value.replace(s_next=s_next, r=r), actor, discount
 
     def actor_loss(self, params: Any, b: Transitions):
         cfg = self.config
@@ -197,15 +221,16 @@ class GCIVL(Baseline):
                             **actor_stats(self.problem, mean, b.a)}
 
     def loss(self, params: Any, target_value: Any, b: Transitions,
-             b_actor: Transitions | None = None) -> tuple[jax.Array, dict]:
+             b_actor: Transitions | None = None, discount=None) -> tuple[jax.Array, dict]:
         """``L_V + L_pi`` (see the module docstring) and the metrics; ``b_actor``: the rows
-        with the actor's goals (default ``b``)."""
-        value_loss, value_info = self.value_loss(params, target_value, b)
+        with the actor's goals (default ``b``); ``discount``: the value rows' (``target_steps``)."""
+        value_loss, value_info = self.value_loss(params, target_value, b, discount)
         actor_loss, actor_info = self.actor_loss(params, b if b_actor is None else b_actor)
         return value_loss + actor_loss, {**value_info, **actor_info}
 
     def update(self, model, batch, key, step):
-        """One Adam step; ``batch``: rows, or ``(value rows, actor rows)`` (:meth:`batch`)."""
+        """One Adam step; ``batch``: rows, or ``(value rows, actor rows[, discounts])``
+        (:meth:`batch`)."""
         pair = (batch, batch) if isinstance(batch, Transitions) else batch
         period = self.config.target_period
         target = model["target_value"]
