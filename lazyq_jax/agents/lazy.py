@@ -132,8 +132,9 @@ class LazyAgent(Agent):
         (:func:`lazyq_jax.targets.multi_step_transitions`), so they need trajectories, goals
         that are states, terminal rows whose state is their goal, and one reward for every
         other row.  (A path also stops at a state equal to its goal in a row that is not
-        terminal: a duplicate of the goal's state, 1 row in 1M on the maze's data.)  With ``n_valid`` (concrete data) the values of the first
-        ``n_valid`` rows are checked too, else only the shapes."""
+        terminal: a duplicate of the goal's state, 1 row in 1M on the maze's data.)  With
+        ``n_valid`` (concrete data) the values of the first ``n_valid`` rows are checked
+        too, else only the shapes."""
         steps = self.config.train.target_steps
         if steps == 1:
             return
