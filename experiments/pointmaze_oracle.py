@@ -521,7 +521,7 @@ def main() -> None:
         if steps > 1:
             paths, disc = multi_step_transitions(jax.tree.map(lambda x: x[:n], data), steps, gamma)
             s2h = np.asarray(paths.s_next)
-            fp_tables = {name: np.asarray(paths.r + disc * jnp.where(paths.done, 0.0, jnp.asarray(v)))
+            fp_tables = {name: np.asarray(bootstrap_values(paths.r, paths.done, jnp.asarray(v), disc))
                          for name, v in (("V* (walls)", value_of(geo.length(s2h, g), gamma).astype(np.float32)),
                                          ("trained V", at_next_of(v_trained, s2h)))}
         results["fixed_point"]["target_steps"] = steps

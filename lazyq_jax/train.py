@@ -203,10 +203,9 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
         variables = {"params": state.params, "batch_stats": state.batch_stats}
         return lambda s, g: network.apply(variables, s, g, train=False)
 
-    def fits(state: TrainState, data: Transitions, idx: jax.Array, weights):
-        # With target_steps = H > 1 each neighbour's bracket is its h-step return (h <= H).
-        data, gamma = multi_step_transitions(data, config.target_steps, config.gamma)
-        return local_fits(value_fn(state), data, idx, gamma=gamma,
+    def fits(state: TrainState, paths: Transitions, gamma, idx: jax.Array, weights):
+        # paths, gamma: multi_step_transitions' (the data and gamma with target_steps = 1)
+        return local_fits(value_fn(state), paths, idx, gamma=gamma,
                           batch_size=config.target_batch_size, mesh=mesh, state_offsets=state_offsets,
                           goal_offsets=goal_offsets, weights=weights,
                           in_sample=config.target_max == "expectile",
@@ -273,14 +272,15 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
         n_valid = valid_rows(data, n_valid)
         valid = jnp.arange(data.r.shape[0]) < n_valid
         key, k_epochs = jax.random.split(state.key)
+        # Each row's h-step transition (h <= target_steps; the data as they are with 1), once a cycle.
+        paths, gamma = multi_step_transitions(data, config.target_steps, config.gamma)
         # The target network: the parameters frozen at the start of the cycle (Eq. 11-12).
         if config.target_max == "next":  # the ablation without the lazy model: own s'
-            y = bootstrap_table(value_fn(state), *multi_step_transitions(data, config.target_steps, config.gamma),
-                                config.target_batch_size, mesh)
+            y = bootstrap_table(value_fn(state), paths, gamma, config.target_batch_size, mesh)
             alpha = beta = y_nb = None
             dqn = (y, jnp.zeros(y.shape, bool))
         else:
-            alpha, beta, y_nb = fits(state, data, idx, weights)
+            alpha, beta, y_nb = fits(state, paths, gamma, idx, weights)
             if config.target_max == "expectile":  # y_nb: the neighbours' values moved to the row
                 dqn = in_sample_target(y_nb, config.target_expectile, weights)
             else:
@@ -291,7 +291,7 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
             e, k = xs
             y, active = dqn
             if config.double_dqn:  # Eq. (13)-(14): the online network picks the action
-                _, beta_online, _ = fits(state, data, idx, weights)
+                _, beta_online, _ = fits(state, paths, gamma, idx, weights)
                 y, active = double_dqn_target(alpha, beta, beta_online, y_nb, action_length,
                                               config.clip, action_set)
             state, loss = epoch(state, data, y, k, n_valid)

@@ -206,7 +206,8 @@ class LazyAgent(Agent):
         if self.config.train.resample_neighbours and block > 0:
             key = jax.random.fold_in(purpose_key(seed, "resample"), block)
         goals = self.goals_for(seed, data, n_valid, block)
-        self.check_target_steps(data.replace(**goals), n_valid)
+        if block == 0 or goals:  # the rows' goals as they are, or fresh ones (relabel_every)
+            self.check_target_steps(data.replace(**goals), n_valid)
         data_g = None if self.row_goal else goals.get("g", data.g)  # row goals: state space only
         nc, n = self.config.neighbours, int(n_valid)
         x = self.search_space(data.s)
