@@ -39,6 +39,10 @@
 # PM_EXTRA="--preset smoke --calibrate 20" SEARCH_N=100000 QUERY_EXTRA="--n-states 2000"
 # ARM_RUNS=500:10 ARM_EXTRA="--set train.cycles=1" SKIP_WHEELS=1
 # PATH=$PWD/.venv/bin:$PATH bash experiments/device_check.sh lazy   (or search query arm)
+# Lazy Q at OGBench's sample budget (1024 one-epoch cycles over the 1M rows = the samples of
+# 1M steps of batch 1024): PM_EXTRA="--set train.cycles=1024" ... lazy.  Not run on a device
+# yet; from the 300 cycles' H200 times (search 69 s + training 103 s) about 69 + 352 s for 3
+# seeds, near the `lazy` part's limit (DEADLINE_S - 100 s): PM_SEEDS=2 leaves a margin.
 set -u
 USAGE="usage: device_check.sh lazy | gcivl STEPS | search | query | arm | layouts (any of the last four, in order)"
 PART=${1:?"$USAGE"}
