@@ -319,13 +319,39 @@ def _sample_members(orig, words, li, found, m, seed, item_q, item_start, first, 
     ``li``/``found``/``m`` from :func:`_pick_level`; ``seed`` uint32 ``[Q]``; ``steps`` at
     least the bit length of the largest ``n_q`` (:func:`_steps`).  Returns int32
     ``[Q, k]`` rows ``orig[entry]`` (``-1`` where not ``found``).
+
+    The two halves, :func:`_draw_ranks` and :func:`_select_members`, are what the host-driven
+    searches run as two programs (see :func:`_draw_ranks`).
     """
-    cap = words.shape[0]
-    # Words of each item at its query's level, their popcounts and global exclusive prefix.
-    word = jnp.take_along_axis(words, li[item_q][:, None], 1)[:, 0]
+    word, prefix, ranks = _draw_ranks(words, li, found, m, seed, item_q, k=k)
+    return _select_members(orig, word, prefix, ranks, found, item_start, first, n_q, steps=steps)
+
+
+def _draw_ranks(words, li, found, m, seed, item_q, *, k: int):
+    """The first half of :func:`_sample_members`: each item's word at its query's level, the
+    global exclusive prefix of their popcounts, and each query's ``k`` distinct ranks in
+    ``[0, m)`` (Floyd).  Returns ``(word [T], prefix [T], ranks [Q, k])``.
+
+    The host-driven searches (:func:`lazyq_jax.neighbours.grid.search_all`) end their program
+    here and run :func:`_select_members` as a second one: in one program XLA on the CPU fuses
+    ``word`` and ``prefix`` (cheap elementwise maps of the popcount sums) into the later
+    per-rank gathers and recomputes them, chains of dependent random gathers, for every rank
+    and bit step (~0.2 s of a 1M-query pass on 2 cores; ``lax.optimization_barrier`` does not
+    stop it on the CPU).
+    """
+    # Words of each item at its query's level (one level: no gather), their popcounts and
+    # global exclusive prefix.
+    word = words[:, 0] if words.shape[1] == 1 else jnp.take_along_axis(words, li[item_q][:, None], 1)[:, 0]
     pc = jax.lax.population_count(word).astype(jnp.int32)
     prefix = _cumsum_small(pc) - pc  # pc <= W
     ranks = _floyd_ranks(seed, jnp.where(found, m, k), k)  # [Q, k]
+    return word, prefix, ranks
+
+
+def _select_members(orig, word, prefix, ranks, found, item_start, first, n_q, *, steps: int):
+    """The second half of :func:`_sample_members`: each rank's member, ``orig[entry]``
+    (``-1`` where not ``found``)."""
+    cap = word.shape[0]
     target = jnp.take(prefix, jnp.minimum(first, cap - 1))[:, None] + ranks
     # The item of each rank: the last item t of the query with prefix[t] <= target.
     if steps <= _WINDOW_STEPS:

@@ -129,9 +129,9 @@ import numpy as np
 from flax import struct
 from jax.sharding import Mesh, PartitionSpec as P
 
-from lazyq_jax.neighbours.common import (TWO_PI, W, Neighbours, _check_params, _items, _key_words, _member_words,
-                                         _pick_level, _query_seeds, _sample_members, _steps, radius_tables, stable_order,
-                                         wrap_angle)
+from lazyq_jax.neighbours.common import (TWO_PI, W, Neighbours, _check_params, _draw_ranks, _items, _key_words,
+                                         _member_words, _pick_level, _query_seeds, _select_members, _steps,
+                                         radius_tables, stable_order, wrap_angle)
 from lazyq_jax.parallel import AXIS, put, replicated, sharded, to_host
 
 __all__ = ["GridAxis", "NDIndex", "build_index_nd", "find_neighbours_nd", "membership_level_reference",
@@ -619,10 +619,12 @@ def build_index_nd(data_s, data_g=None, *, k=20, radius_s=0.06, radius_g=0.1, gr
 # ----------------------------------------------------------------------------- jitted core
 
 
-def _search_chunk(index: NDIndex, seed, real, qcols, ip, fr, *, lo, hi, cap, steps, full):
-    """Levels ``lo..hi`` for one chunk of queries (stencil of level ``hi``), then sampling.
+def _search_chunk(index: NDIndex, seed, real, qcols, ip, fr, *, lo, hi, cap, full):
+    """Levels ``lo..hi`` for one chunk of queries (stencil of level ``hi``) and each query's
+    ``k`` ranks: the first of a chunk's two programs (:func:`_select_chunk` is the second;
+    :func:`lazyq_jax.neighbours.common._draw_ranks` says why two).
 
-    Returns ``(idx, level, count, need, max_items, span_bad)``; the results are valid only
+    Returns ``(sample, level, count, need, max_items, span_bad)``; the results are valid only
     if ``need <= cap``, ``max_items < 2**steps`` and not ``span_bad`` (checked by the caller).
     ``level == -1`` where ``|B_hi| < k``.
     """
@@ -637,31 +639,47 @@ def _search_chunk(index: NDIndex, seed, real, qcols, ip, fr, *, lo, hi, cap, ste
     item_q, item_start, item_valid, first, n_q = _items(start, length, cap)
     words = _member_words(index, qcols, item_q, item_start, item_valid, lo, hi)
     found, li, level, m = _pick_level(words, item_q, c, k, lo)
-    idx = _sample_members(index.orig, words, li, found, m, seed, item_q, item_start, first, n_q, k=k,
-                          steps=steps)
-    return idx, level.astype(jnp.int32), m.astype(jnp.int32), need, max_items, span_bad
+    word, prefix, ranks = _draw_ranks(words, li, found, m, seed, item_q, k=k)
+    sample = (word, prefix, ranks, found, item_start, first, n_q)
+    return sample, level.astype(jnp.int32), m.astype(jnp.int32), need, max_items, span_bad
 
 
-@partial(jax.jit, static_argnames=("lo", "hi", "cap", "steps", "full"))
-def _chunk(index: NDIndex, key_words, rows, qcols, ip, fr, *, lo, hi, cap, steps, full):
+@partial(jax.jit, static_argnames=("lo", "hi", "cap", "full"))
+def _chunk(index: NDIndex, key_words, rows, qcols, ip, fr, *, lo, hi, cap, full):
     """:func:`_search_chunk` on one chunk of ``C`` queries (their rows in ``query_s``, ``-1`` =
     padding, and their columns/cells gathered on the host, so that the compiled chunk does
     not depend on the number of queries)."""
     return _search_chunk(index, _query_seeds(key_words, rows), rows >= 0, qcols, ip, fr,
-                         lo=lo, hi=hi, cap=cap, steps=steps, full=full)
+                         lo=lo, hi=hi, cap=cap, full=full)
 
 
-@partial(jax.jit, static_argnames=("lo", "hi", "cap", "steps", "full", "mesh"))
-def _chunks_on_mesh(index: NDIndex, key_words, rows, qcols, ip, fr, *, lo, hi, cap, steps, full, mesh):
+@partial(jax.jit, static_argnames=("steps",))
+def _select_chunk(orig, sample, *, steps):
+    """A chunk's second program: each rank of :func:`_chunk`'s ``sample`` mapped to its member
+    (``steps``: at least the bit length of the most items of a query)."""
+    return _select_members(orig, *sample, steps=steps)
+
+
+@partial(jax.jit, static_argnames=("lo", "hi", "cap", "full", "mesh"))
+def _chunks_on_mesh(index: NDIndex, key_words, rows, qcols, ip, fr, *, lo, hi, cap, full, mesh):
     """``mesh.size`` chunks (inputs stacked on a leading axis), one a device: each device runs
-    :func:`_chunk`'s program on its chunk; the results stacked likewise (read on the host)."""
+    :func:`_chunk`'s program on its chunk; the results stacked likewise."""
     def one(index, key_words, rows, qcols, ip, fr):  # one device: its chunk, through _chunk
-        res = _chunk(index, key_words, rows[0], qcols[0], ip[0], fr[0], lo=lo, hi=hi, cap=cap,
-                     steps=steps, full=full)
-        return tuple(r[None] for r in res)
+        res = _chunk(index, key_words, rows[0], qcols[0], ip[0], fr[0], lo=lo, hi=hi, cap=cap, full=full)
+        return jax.tree.map(lambda r: r[None], res)
 
     return jax.shard_map(one, mesh=mesh, in_specs=(P(), P(), *[P(AXIS)] * 4), out_specs=P(AXIS),
                          check_vma=False)(index, key_words, rows, qcols, ip, fr)
+
+
+@partial(jax.jit, static_argnames=("steps", "mesh"))
+def _select_on_mesh(orig, sample, *, steps, mesh):
+    """:func:`_select_chunk` on each device's chunk of :func:`_chunks_on_mesh`'s samples."""
+    def one(orig, sample):
+        return _select_chunk(orig, jax.tree.map(lambda r: r[0], sample), steps=steps)[None]
+
+    return jax.shard_map(one, mesh=mesh, in_specs=(P(), P(AXIS)), out_specs=P(AXIS),
+                         check_vma=False)(orig, sample)
 
 
 @partial(jax.jit, static_argnames=("level", "full"))
@@ -782,17 +800,20 @@ def search_all_nd(index: NDIndex, key, query_s, query_g=None, *, n_queries: int 
                 o[:, :b - a] = x[:, a:b]
         return (rows, *out)
 
-    def run_chunks(ids, **static):
+    def run_chunks(ids, steps, **static):
         """Chunks ``ids``, dispatched asynchronously: ``[(ci, results)]``."""
         if mesh is None:
-            return [(ci, _chunk(index, key_words, *map(jnp.asarray, chunk_inputs(ci)), **static))
-                    for ci in ids]
+            done = []
+            for ci in ids:
+                sample, *rest = _chunk(index, key_words, *map(jnp.asarray, chunk_inputs(ci)), **static)
+                done.append((ci, (_select_chunk(index.orig, sample, steps=steps), *rest)))
+            return done
         d, groups = mesh.size, []
         for g0 in range(0, len(ids), d):  # D chunks a program, the last group padded (rows -1)
             group = ids[g0:g0 + d]
             inputs = [np.stack(x) for x in zip(*map(chunk_inputs, group + [None] * (d - len(group))))]
-            groups.append((group, _chunks_on_mesh(*on_mesh, *put(inputs, sharded(mesh)), mesh=mesh,
-                                                  **static)))
+            sample, *rest = _chunks_on_mesh(*on_mesh, *put(inputs, sharded(mesh)), mesh=mesh, **static)
+            groups.append((group, (_select_on_mesh(on_mesh[0].orig, sample, steps=steps, mesh=mesh), *rest)))
         # read on the host: indexing the sharded results on the devices would be a program
         # with collectives
         done = []
@@ -839,7 +860,7 @@ def search_all_nd(index: NDIndex, key, query_s, query_g=None, *, n_queries: int 
                 "measure_s": time.perf_counter() - t_pass}
         todo = list(range(n_chunks))
         while todo:
-            results = run_chunks(todo, lo=lo, hi=hi, cap=cap, steps=steps, full=full)
+            results = run_chunks(todo, steps, lo=lo, hi=hi, cap=cap, full=full)
             failed, worst_need, worst_items = [], 0.0, 0.0
             for ci, (idx, level, count, need, max_items, bad) in results:
                 need, max_items = float(need), float(max_items)
