@@ -226,12 +226,14 @@ def build_index(data_s, data_g, *, k=20, radius_s=0.06, radius_g=0.1, growth=2 *
 
 def _max_window(offsets, n_x, w_cells):
     """Most entries in ``w_cells`` consecutive x-cells of one row, over all rows (NumPy or,
-    under ``jit``, JAX offsets)."""
+    under ``jit``, JAX offsets).  Windows that a row's end cuts short hold no more than the
+    row's last full window (the offsets grow), so only full windows are compared: slices of
+    the ``[rows, n_x + 1]`` table of each row's cell starts and end, no gathers."""
     xp = jnp if isinstance(offsets, jax.Array) else np
-    start = xp.arange(offsets.shape[0] - 1)
-    i = start % n_x
-    end = start - i + xp.minimum(i + w_cells, n_x)
-    return (offsets[end] - offsets[start]).max()
+    w = min(int(w_cells), n_x)
+    rows = (offsets.shape[0] - 1) // n_x
+    table = xp.concatenate([offsets[:-1].reshape(rows, n_x), offsets[n_x::n_x][:, None]], axis=1)
+    return (table[:, w:] - table[:, :n_x + 1 - w]).max()
 
 
 def _cell_thresholds(lo: float, h: float, n: int) -> jax.Array:
@@ -404,18 +406,31 @@ def _rank_pass(index: GridIndex, queries, start, length, *, lo, hi, n_items, mes
     return _sharded(rank, mesh, 1, 6)(index, *queries, start, length)
 
 
-@partial(jax.jit, static_argnames=("steps", "mesh"), donate_argnums=(4,))
-def _select_pass(index: GridIndex, items, per_query, sub, out, *, steps, mesh=None):
-    """Each rank's member (``steps``: at least the bit length of the most items of a query),
-    written with the levels and counts into ``out = (idx, level, count)`` at the rows
-    ``sub`` (padding entries ``Q`` are dropped, so every row has one writer)."""
+@partial(jax.jit, static_argnames=("steps", "mesh"))
+def _select_pass(index: GridIndex, items, per_query, *, steps, mesh=None):
+    """Each rank's member (``steps``: at least the bit length of the most items of a query):
+    ``(idx, level, count)`` of the pass's queries, in the pass's order."""
 
     def select(orig, word, prefix, item_start, ranks, found, first, n_q):
         return _select_members(orig, word, prefix, ranks, found, item_start, first, n_q, steps=steps)
 
     ranks, found, first, n_q, level, m = per_query
-    idx = _sharded(select, mesh, 1, 7)(index.orig, *items, ranks, found, first, n_q)
-    return tuple(o.at[sub].set(r, mode="drop") for o, r in zip(out, (idx, level, m)))
+    return _sharded(select, mesh, 1, 7)(index.orig, *items, ranks, found, first, n_q), level, m
+
+
+@jax.jit
+def _unsort(results, inv):
+    """The first pass's results (every query, in cell order) in the queries' order: row ``q``
+    is row ``inv[q]`` (``inv[q]`` past the results for rows that are not searched: zeros).  A
+    gather, where writing them back with a scatter would be ~1.5x slower on the CPU."""
+    return tuple(jnp.concatenate([r, jnp.zeros_like(r[:1])]).at[inv].get(mode="clip") for r in results)
+
+
+@partial(jax.jit, donate_argnums=(0,))
+def _write(out, sub, results):
+    """A later pass's results into ``out`` at the rows ``sub`` (padding entries ``Q`` are
+    dropped, so every row has one writer)."""
+    return tuple(o.at[sub].set(r, mode="drop") for o, r in zip(out, results))
 
 
 def _bucket(n: int, coarse: bool = False) -> int:
@@ -490,16 +505,23 @@ def search_all(index: GridIndex, key, query_s, query_g, *, mesh: Mesh | None = N
     if n_q == 0:
         z = jnp.zeros((0,), jnp.int32)
         return Neighbours(idx=jnp.zeros((0, k), jnp.int32), level=z, count=z)
-    # Query order: by g-cell, then y, then x cell (the data layout) for locality.
-    cell = (np.floor((qg + np.pi) * (index.n_g / (2 * np.pi))).astype(np.int64) * index.n_y
-            + np.clip(np.floor((qs[:, 1] - index.y0) / index.h_y), 0, index.n_y - 1).astype(np.int64)
-            ) * index.n_x + np.clip(np.floor((qs[:, 0] - index.x0) / index.h_x), 0, index.n_x - 1).astype(np.int64)
-    order = stable_order(cell[:n_real]).astype(np.int32)
+    # Query order, for locality only (a query's result does not depend on it): by g-cell, then
+    # y-cell, the rows of the data layout (a stencil reads ~5 rows of one g-block, a few KB
+    # each at the paper's density, so the order within a row hardly matters); in float32, and
+    # one 16-bit radix pass where the key fits.
+    f32 = np.float32
+    row = (np.clip(np.floor((qg[:n_real] + PI) * f32(index.n_g / (2 * np.pi))), 0, index.n_g - 1).astype(np.int32)
+           * index.n_y + np.clip(np.floor((qs[:n_real, 1] - f32(index.y0)) / f32(index.h_y)), 0,
+                                 index.n_y - 1).astype(np.int32))
+    order = (np.argsort(row.astype(np.uint16), kind="stable") if index.n_g * index.n_y <= 1 << 16
+             else stable_order(row)).astype(np.int32)
     # Level at which the radii cover everything: |B| = N there.
     real = qs[:n_real] if n_real else qs[:1]
     lo_x, lo_y = min(real[:, 0].min(), index.x0), min(real[:, 1].min(), index.y0)
-    hi_x = max(real[:, 0].max(), float(index.cols[0].max()))
-    hi_y = max(real[:, 1].max(), float(index.cols[1].max()))
+    # the data lie below the grid's far edges (x0 + n_x h_x, y0 + n_y h_y): a bound, not read off
+    # the entries (two reductions over the D N entries)
+    hi_x = max(real[:, 0].max(), index.x0 + index.n_x * index.h_x)
+    hi_y = max(real[:, 1].max(), index.y0 + index.n_y * index.h_y)
     diag = math.hypot(hi_x - lo_x, hi_y - lo_y)
     g = index.growth
     level_all = 1 + max(0, math.ceil(math.log(max(diag, 1e-30) / index.radius_s) / math.log(g)),
@@ -507,7 +529,7 @@ def search_all(index: GridIndex, key, query_s, query_g, *, mesh: Mesh | None = N
     # The passes do not read max_level/max_window (query_neighbours' capacities): indices that
     # differ only there share compiled passes.
     index = index.replace(max_level=0, max_window=1)
-    out = (jnp.zeros((n_q, k), jnp.int32), jnp.zeros((n_q,), jnp.int32), jnp.zeros((n_q,), jnp.int32))
+    out = None  # the first pass writes every row
     pending, lo, hi, p = order, 0, 0, 0
     qs_j, qg_j = jnp.asarray(qs), jnp.asarray(qg)
     d = 1 if mesh is None else mesh.size
@@ -515,7 +537,7 @@ def search_all(index: GridIndex, key, query_s, query_g, *, mesh: Mesh | None = N
         # Pad the pending queries (pass 1: all n_q rows, padding included; later, few,
         # passes: to a power of two, so that datasets of similar sizes share compiled
         # passes) to a multiple of the device count with the out-of-range index n_q,
-        # whose results _select_pass drops.
+        # whose results are dropped.
         size = -(-(n_q if p == 0 else 1 << (pending.size - 1).bit_length()) // d) * d
         sub = np.concatenate([pending, np.full(size - pending.size, n_q, np.int32)])
         sub_j = jnp.asarray(sub)
@@ -524,11 +546,19 @@ def search_all(index: GridIndex, key, query_s, query_g, *, mesh: Mesh | None = N
         n_it = np.asarray(n_it)
         items, per_query = _rank_pass(index, queries, start, length, lo=lo, hi=hi, mesh=mesh,
                                       n_items=_bucket(n_it.reshape(d, -1).sum(axis=1).max(), coarse=p > 0))
-        out = _select_pass(index, items, per_query, sub_j, out, steps=_steps(n_it.max()), mesh=mesh)
+        results = _select_pass(index, items, per_query, steps=_steps(n_it.max()), mesh=mesh)
+        if p == 0:
+            inv = np.full(n_q, size, np.int32)  # rows past n_real: the zero row
+            inv[pending] = np.arange(pending.size, dtype=np.int32)
+            out = _unsort(results, jnp.asarray(inv))
+        else:
+            out = _write(out, sub_j, results)
         pending = pending[to_host(out[1])[pending] < 0]
         if pending.size and hi >= level_all:
             raise AssertionError("internal error: radius covers all data but fewer than k members")
         lo, hi, p = hi + 1, min(max(2 * hi + 1, 3), level_all), p + 1
+    if out is None:  # nothing searched (n_queries=0): every row is padding
+        out = (jnp.zeros((n_q, k), jnp.int32), jnp.zeros((n_q,), jnp.int32), jnp.zeros((n_q,), jnp.int32))
     idx, level, count = out
     return Neighbours(idx=idx, level=level, count=count)
 
