@@ -543,7 +543,7 @@ def search_all(index: GridIndex, key, query_s, query_g, *, mesh: Mesh | None = N
         sub_j = jnp.asarray(sub)
         queries, start, length, n_it = _plan_pass(index, jax.random.fold_in(key, p), qs_j, qg_j, sub_j,
                                                   level=hi, mesh=mesh)
-        n_it = np.asarray(n_it)
+        n_it = to_host(n_it)  # (on a mesh of several processes: from every process)
         items, per_query = _rank_pass(index, queries, start, length, lo=lo, hi=hi, mesh=mesh,
                                       n_items=_bucket(n_it.reshape(d, -1).sum(axis=1).max(), coarse=p > 0))
         results = _select_pass(index, items, per_query, steps=_steps(n_it.max()), mesh=mesh)
