@@ -137,6 +137,7 @@ def main():
     print(f"jax grid hash: first call (compile + run) {first:.2f} s; steady state {steady:.3f} s "
           f"= build_index {np.median(build_t):.3f} s + search_all {np.median(times):.3f} s "
           f"(median of {args.repeats}; all: {', '.join(f'{t:.3f}' for t in times)})")
+    print(f"  build_index, all: {', '.join(f'{t:.3f}' for t in build_t)}")
     print(f"  compile (first - steady): {first - steady:.2f} s")
     for other in paths[1:]:
         t0 = time.perf_counter()

@@ -232,3 +232,55 @@ def test_device_build_equals_the_host_build_bitwise():
     assert host.h_x > 0.25 * 0.002 * 1.001  # the last case did coarsen
     flat = np.zeros_like(s)  # one x-cell and one y-cell: no thresholds at all
     chex.assert_trees_all_equal(build_index(flat, g, on_device=False), build_index(flat, g, on_device=True))
+
+
+def test_max_window_against_every_window():
+    """``_max_window`` (slices of the rows' cell starts) against every window of ``w``
+    consecutive x-cells of every row, cut short at the row's end, counted one by one; NumPy
+    and JAX offsets, rows of one cell, windows wider than a row."""
+    from lazyq_jax.neighbours.grid import _max_window
+
+    rng = np.random.default_rng(5)
+    for n_rows, n_x in [(1, 1), (3, 1), (5, 7), (40, 13), (2, 50)]:
+        for w in [1, 2, 3, 7, 13, 60]:
+            counts = rng.integers(0, 6, n_rows * n_x) * (rng.random(n_rows * n_x) < 0.6)
+            offsets = np.concatenate([[0], np.cumsum(counts)])
+            want = max(int(counts[r * n_x + i: r * n_x + min(i + w, n_x)].sum())
+                       for r in range(n_rows) for i in range(n_x))
+            assert int(_max_window(offsets, n_x, min(w, n_x))) == want
+            assert int(_max_window(jnp.asarray(offsets.astype(np.int32)), n_x, min(w, n_x))) == want
+
+
+def test_host_build_leaves_numpys_hugepage_advice_as_it_found_it(monkeypatch):
+    """The host build turns NumPy's madvise(MADV_HUGEPAGE) off while it allocates (page
+    compaction stalls) and restores the caller's setting, either way, also on an error."""
+    from lazyq_jax.neighbours import grid
+
+    if grid._set_madvise_hugepage is None:
+        pytest.skip("this NumPy has no _set_madvise_hugepage")
+    s = np.random.default_rng(0).uniform(-1, 1, (500, 2)).astype(np.float32)
+    g = np.zeros(500, np.float32)
+    seen = []
+    inner = grid._build_on_host
+
+    def spy(*a, **kw):
+        was = grid._set_madvise_hugepage(False)  # read the setting inside the build
+        seen.append(was)
+        grid._set_madvise_hugepage(was)
+        return inner(*a, **kw)
+
+    monkeypatch.setattr(grid, "_build_on_host", spy)
+    original = grid._set_madvise_hugepage(True)
+    try:
+        for setting in (True, False):
+            grid._set_madvise_hugepage(setting)
+            build_index(s, g, on_device=False)
+            assert grid._set_madvise_hugepage(setting) == setting  # restored
+        monkeypatch.setattr(grid, "_entries", lambda *a, **kw: 1 / 0)
+        grid._set_madvise_hugepage(True)
+        with pytest.raises(ZeroDivisionError):
+            build_index(s, g, on_device=False)
+        assert grid._set_madvise_hugepage(True) is True
+    finally:
+        grid._set_madvise_hugepage(original)
+    assert seen == [False, False, False]

@@ -52,6 +52,7 @@ Two entry points:
 
 from __future__ import annotations
 
+import contextlib
 import math
 from functools import partial
 
@@ -65,6 +66,11 @@ from lazyq_jax.neighbours.common import (PI, W, Neighbours, _check_params, _draw
                                          _pick_level, _sample_members, _select_members, _steps, stable_order,
                                          wrap_angle)
 from lazyq_jax.parallel import AXIS, to_host
+
+try:  # NumPy's switch for its madvise(MADV_HUGEPAGE) on large arrays (see _without_hugepage_advice)
+    from numpy._core.multiarray import _set_madvise_hugepage
+except ImportError:  # not every NumPy build has it
+    _set_madvise_hugepage = None
 
 D = 5  # g-cells per g-block (each point is stored D times)
 _FX, _FY, _FG = 0.25, 0.5, 0.5  # cell size / base radius in x, y, g
@@ -185,32 +191,9 @@ def build_index(data_s, data_g, *, k=20, radius_s=0.06, radius_g=0.1, growth=2 *
             jnp.asarray(s), jnp.asarray(g), t_x, t_y, t_g, n_x=n_x, n_y=n_y, n_g=n_g,
             capacity=capacity, w_cells=w_cells)
     else:
-        ix = np.clip(np.floor((x - x0) / h_x), 0, n_x - 1).astype(np.int64)
-        iy = np.clip(np.floor((y - y0) / h_y), 0, n_y - 1).astype(np.int64)
-        ig = np.clip(np.floor((g.astype(np.float64) + np.pi) / h_g), 0, n_g - 1).astype(np.int64)
-        # Entry copies: a point with g-cell c lies in g-blocks c-D+1 .. c (block b = cells
-        # b..b+D-1).  Sort by (y-cell, x-cell) once, then stably by block (a radix sort on
-        # small ints): the entries in order of (cell, point index).
-        yx = iy * n_x + ix
-        by_yx = stable_order(yx)
-        blocks = ig[by_yx].astype(np.int32)[:, None] - np.arange(D, dtype=np.int32)[None, :]
-        blocks[blocks < 0] += n_g
-        blocks = blocks.ravel()
-        order = (np.argsort(blocks.astype(np.uint16), kind="stable") if n_g <= 1 << 16
-                 else stable_order(blocks))
-        src = by_yx[order // D]
-        # Entries a cell: block b's cell yx holds the points of g-cells b .. b+D-1 in yx.
-        n_yx = n_y * n_x
-        per_g = np.bincount(ig * n_yx + yx, minlength=n_g * n_yx).reshape(n_g, n_yx)
-        per_block = per_g.copy()
-        for d in range(1, D):
-            per_block += np.roll(per_g, -d, axis=0)
-        offsets = np.zeros(n_g * n_yx + 1, np.int64)
-        np.cumsum(per_block.ravel(), out=offsets[1:])
-        own_window = _max_window(offsets, n_x, w_cells)
-        cols, orig = _entries(jnp.asarray(s), jnp.asarray(g), jnp.asarray(src.astype(np.int32)),
-                              capacity=capacity)
-        offsets = jnp.asarray(offsets.astype(np.int32))
+        with _without_hugepage_advice():
+            cols, orig, offsets, own_window = _build_on_host(s, g, x, y, x0, y0, h_x, h_y, h_g, n_x=n_x, n_y=n_y,
+                                                             n_g=n_g, capacity=capacity, w_cells=w_cells)
     own_window = max(int(own_window), 1)
     if max_window is None:
         max_window = own_window
@@ -222,6 +205,57 @@ def build_index(data_s, data_g, *, k=20, radius_s=0.06, radius_g=0.1, growth=2 *
         growth=float(growth), x0=x0, y0=y0, h_x=h_x, h_y=h_y, n_x=n_x, n_y=n_y, n_g=n_g,
         margin=margin, max_level=int(max_level), max_window=int(max_window),
     )
+
+
+def _build_on_host(s, g, x, y, x0, y0, h_x, h_y, h_g, *, n_x, n_y, n_g, capacity, w_cells):
+    """The host build (NumPy radix sorts, the entries gathered on the device): ``(cols, orig,
+    offsets, own_window)``; ``x``, ``y`` the states' coordinates in float64, ``g`` the
+    wrapped goals."""
+    ix = np.clip(np.floor((x - x0) / h_x), 0, n_x - 1).astype(np.int64)
+    iy = np.clip(np.floor((y - y0) / h_y), 0, n_y - 1).astype(np.int64)
+    ig = np.clip(np.floor((g.astype(np.float64) + np.pi) / h_g), 0, n_g - 1).astype(np.int64)
+    # Entry copies: a point with g-cell c lies in g-blocks c-D+1 .. c (block b = cells
+    # b..b+D-1).  Sort by (y-cell, x-cell) once, then stably by block (a radix sort on
+    # small ints): the entries in order of (cell, point index).
+    yx = iy * n_x + ix
+    by_yx = stable_order(yx)
+    blocks = ig[by_yx].astype(np.int32)[:, None] - np.arange(D, dtype=np.int32)[None, :]
+    blocks[blocks < 0] += n_g
+    blocks = blocks.ravel()
+    order = (np.argsort(blocks.astype(np.uint16), kind="stable") if n_g <= 1 << 16
+             else stable_order(blocks))
+    src = by_yx[order // D]
+    # Entries a cell: block b's cell yx holds the points of g-cells b .. b+D-1 in yx.
+    n_yx = n_y * n_x
+    per_g = np.bincount(ig * n_yx + yx, minlength=n_g * n_yx).reshape(n_g, n_yx)
+    per_block = per_g.copy()
+    for d in range(1, D):
+        per_block += np.roll(per_g, -d, axis=0)
+    offsets = np.zeros(n_g * n_yx + 1, np.int64)
+    np.cumsum(per_block.ravel(), out=offsets[1:])
+    own_window = _max_window(offsets, n_x, w_cells)
+    cols, orig = _entries(jnp.asarray(s), jnp.asarray(g), jnp.asarray(src.astype(np.int32)),
+                          capacity=capacity)
+    offsets = jnp.asarray(offsets.astype(np.int32))
+    return cols, orig, offsets, own_window
+
+
+@contextlib.contextmanager
+def _without_hugepage_advice():
+    """NumPy's large-array ``madvise(MADV_HUGEPAGE)`` off while the host build allocates, and
+    restored after.  Where the kernel's transparent huge pages have ``defrag = madvise``
+    (Ubuntu's default), those advised allocations can stall in synchronous compaction, most
+    in a process's first builds: at N = 1M on the 2-core CPU the build's 0.3 s took 0.5-1.0 s
+    in the first builds of a process with the advice, a steady 0.28-0.31 s without
+    (``experiments/bench_neighbours.py``, before and after; docs/performance.md)."""
+    if _set_madvise_hugepage is None:
+        yield
+        return
+    was = _set_madvise_hugepage(False)
+    try:
+        yield
+    finally:
+        _set_madvise_hugepage(was)
 
 
 def _max_window(offsets, n_x, w_cells):
