@@ -254,9 +254,9 @@ def test_max_window_against_every_window():
 def test_host_build_leaves_numpys_hugepage_advice_as_it_found_it(monkeypatch):
     """The host build turns NumPy's madvise(MADV_HUGEPAGE) off while it allocates (page
     compaction stalls) and restores the caller's setting, either way, also on an error."""
-    from lazyq_jax.neighbours import grid
+    from lazyq_jax.neighbours import common, grid
 
-    if grid._set_madvise_hugepage is None:
+    if common._set_madvise_hugepage is None:
         pytest.skip("this NumPy has no _set_madvise_hugepage")
     s = np.random.default_rng(0).uniform(-1, 1, (500, 2)).astype(np.float32)
     g = np.zeros(500, np.float32)
@@ -264,23 +264,23 @@ def test_host_build_leaves_numpys_hugepage_advice_as_it_found_it(monkeypatch):
     inner = grid._build_on_host
 
     def spy(*a, **kw):
-        was = grid._set_madvise_hugepage(False)  # read the setting inside the build
+        was = common._set_madvise_hugepage(False)  # read the setting inside the build
         seen.append(was)
-        grid._set_madvise_hugepage(was)
+        common._set_madvise_hugepage(was)
         return inner(*a, **kw)
 
     monkeypatch.setattr(grid, "_build_on_host", spy)
-    original = grid._set_madvise_hugepage(True)
+    original = common._set_madvise_hugepage(True)
     try:
         for setting in (True, False):
-            grid._set_madvise_hugepage(setting)
+            common._set_madvise_hugepage(setting)
             build_index(s, g, on_device=False)
-            assert grid._set_madvise_hugepage(setting) == setting  # restored
+            assert common._set_madvise_hugepage(setting) == setting  # restored
         monkeypatch.setattr(grid, "_entries", lambda *a, **kw: 1 / 0)
-        grid._set_madvise_hugepage(True)
+        common._set_madvise_hugepage(True)
         with pytest.raises(ZeroDivisionError):
             build_index(s, g, on_device=False)
-        assert grid._set_madvise_hugepage(True) is True
+        assert common._set_madvise_hugepage(True) is True
     finally:
-        grid._set_madvise_hugepage(original)
+        common._set_madvise_hugepage(original)
     assert seen == [False, False, False]

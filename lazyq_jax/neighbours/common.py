@@ -15,10 +15,17 @@ planned) is all that differs between the engines."""
 
 from __future__ import annotations
 
+import contextlib
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+
+try:  # NumPy's switch for its madvise(MADV_HUGEPAGE) on large arrays (see _without_hugepage_advice)
+    from numpy._core.multiarray import _set_madvise_hugepage
+except ImportError:  # not every NumPy build has it
+    _set_madvise_hugepage = None
 
 PI = np.float32(np.pi)
 TWO_PI = np.float32(2 * np.pi)
@@ -47,6 +54,24 @@ class Neighbours:
     def found(self) -> jax.Array:
         return self.level >= 0
 
+
+
+@contextlib.contextmanager
+def _without_hugepage_advice():
+    """NumPy's large-array ``madvise(MADV_HUGEPAGE)`` off while a host build (the grid's or the general search's) allocates, and
+    restored after.  Where the kernel's transparent huge pages have ``defrag = madvise``
+    (Ubuntu's default), those advised allocations can stall in synchronous compaction, most
+    in a process's first builds: at N = 1M on the 2-core CPU the build's 0.3 s took 0.5-1.0 s
+    in the first builds of a process with the advice, a steady 0.28-0.31 s without
+    (``experiments/bench_neighbours.py``, before and after; docs/performance.md)."""
+    if _set_madvise_hugepage is None:
+        yield
+        return
+    was = _set_madvise_hugepage(False)
+    try:
+        yield
+    finally:
+        _set_madvise_hugepage(was)
 
 
 def _check_params(k, radius_s, radius_g, growth):

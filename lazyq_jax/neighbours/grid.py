@@ -52,7 +52,6 @@ Two entry points:
 
 from __future__ import annotations
 
-import contextlib
 import math
 from functools import partial
 
@@ -63,14 +62,9 @@ from flax import struct
 from jax.sharding import Mesh, PartitionSpec as P
 
 from lazyq_jax.neighbours.common import (PI, W, Neighbours, _check_params, _draw_ranks, _items, _member_words,
-                                         _pick_level, _sample_members, _select_members, _steps, stable_order,
-                                         wrap_angle)
+                                         _pick_level, _sample_members, _select_members, _steps,
+                                         _without_hugepage_advice, stable_order, wrap_angle)
 from lazyq_jax.parallel import AXIS, to_host
-
-try:  # NumPy's switch for its madvise(MADV_HUGEPAGE) on large arrays (see _without_hugepage_advice)
-    from numpy._core.multiarray import _set_madvise_hugepage
-except ImportError:  # not every NumPy build has it
-    _set_madvise_hugepage = None
 
 D = 5  # g-cells per g-block (each point is stored D times)
 _FX, _FY, _FG = 0.25, 0.5, 0.5  # cell size / base radius in x, y, g
@@ -238,24 +232,6 @@ def _build_on_host(s, g, x, y, x0, y0, h_x, h_y, h_g, *, n_x, n_y, n_g, capacity
                           capacity=capacity)
     offsets = jnp.asarray(offsets.astype(np.int32))
     return cols, orig, offsets, own_window
-
-
-@contextlib.contextmanager
-def _without_hugepage_advice():
-    """NumPy's large-array ``madvise(MADV_HUGEPAGE)`` off while the host build allocates, and
-    restored after.  Where the kernel's transparent huge pages have ``defrag = madvise``
-    (Ubuntu's default), those advised allocations can stall in synchronous compaction, most
-    in a process's first builds: at N = 1M on the 2-core CPU the build's 0.3 s took 0.5-1.0 s
-    in the first builds of a process with the advice, a steady 0.28-0.31 s without
-    (``experiments/bench_neighbours.py``, before and after; docs/performance.md)."""
-    if _set_madvise_hugepage is None:
-        yield
-        return
-    was = _set_madvise_hugepage(False)
-    try:
-        yield
-    finally:
-        _set_madvise_hugepage(was)
 
 
 def _max_window(offsets, n_x, w_cells):

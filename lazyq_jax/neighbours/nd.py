@@ -131,7 +131,7 @@ from jax.sharding import Mesh, PartitionSpec as P
 
 from lazyq_jax.neighbours.common import (TWO_PI, W, Neighbours, _check_params, _draw_ranks, _items, _key_words,
                                          _member_words, _pick_level, _query_seeds, _select_members, _steps,
-                                         radius_tables, stable_order, wrap_angle)
+                                         _without_hugepage_advice, radius_tables, stable_order, wrap_angle)
 from lazyq_jax.parallel import AXIS, put, replicated, sharded, to_host
 
 __all__ = ["GridAxis", "NDIndex", "build_index_nd", "find_neighbours_nd", "membership_level_reference",
@@ -603,13 +603,14 @@ def build_index_nd(data_s, data_g=None, *, k=20, radius_s=0.06, radius_g=0.1, gr
             raise ValueError("the last grid axis must not be the (periodic) angle")
         chosen = (_coarsen([info[a[0]] for a in spec], [a[1] for a in spec], col_lo, col_hi, n, rep)
                   if spec else ())
-    if chosen:
-        src, offsets = _sorted_table(chosen, cols)
-    else:
-        src, offsets = np.arange(n), np.array([0, n], np.int64)
-    sorted_cols = np.zeros((cols.shape[0], src.size + W), np.float32)
-    for c in range(cols.shape[0]):
-        np.take(cols[c], src, out=sorted_cols[c, :src.size])
+    with _without_hugepage_advice():  # large host arrays (see there)
+        if chosen:
+            src, offsets = _sorted_table(chosen, cols)
+        else:
+            src, offsets = np.arange(n), np.array([0, n], np.int64)
+        sorted_cols = np.zeros((cols.shape[0], src.size + W), np.float32)
+        for c in range(cols.shape[0]):
+            np.take(cols[c], src, out=sorted_cols[c, :src.size])
     return NDIndex(cols=jnp.asarray(sorted_cols), orig=jnp.asarray(src.astype(np.int32)),
                    offsets=jnp.asarray(offsets.astype(np.int32)), k=int(k), radius_s=float(radius_s),
                    radius_g=float(radius_g), growth=float(growth), d_s=d_s, goal=kind, d_g=d_g,
