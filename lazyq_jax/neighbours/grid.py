@@ -378,7 +378,8 @@ def _sharded(fn, mesh, n_replicated: int, n_split: int):
 #                 (read back to size the next program exactly);
 #   _rank_pass:   items, membership words, level, each item's word and popcount prefix, and
 #                 the k ranks of every query (common._draw_ranks);
-#   _select_pass: each rank's member (common._select_members), written into the results.
+#   _select_pass: each rank's member (common._select_members); then _unsort (the first pass:
+#                 every query) or _write (a later pass: a few) puts them in the queries' rows.
 
 
 @partial(jax.jit, static_argnames=("level", "mesh"))
