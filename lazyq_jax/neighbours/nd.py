@@ -559,6 +559,23 @@ def _sorted_table(grid, cols):
     return by_rest[order // block.shape[1]], offsets
 
 
+def _sorted_columns(grid, cols):
+    """``(src, offsets, sorted_cols)``: the entries sorted by :func:`_sorted_table` (all points
+    in order for the empty grid, a scan) and their columns ``[n_cols, E + W]`` (``W`` zero
+    entries at the end: every item one contiguous slice), NumPy's huge-page advice off while
+    they are allocated (:func:`lazyq_jax.neighbours.common._without_hugepage_advice`)."""
+    n = cols.shape[1]
+    with _without_hugepage_advice():
+        if grid:
+            src, offsets = _sorted_table(grid, cols)
+        else:
+            src, offsets = np.arange(n), np.array([0, n], np.int64)
+        sorted_cols = np.zeros((cols.shape[0], src.size + W), np.float32)
+        for c in range(cols.shape[0]):
+            np.take(cols[c], src, out=sorted_cols[c, :src.size])
+    return src, offsets, sorted_cols
+
+
 # ----------------------------------------------------------------------------- index
 
 
@@ -603,14 +620,7 @@ def build_index_nd(data_s, data_g=None, *, k=20, radius_s=0.06, radius_g=0.1, gr
             raise ValueError("the last grid axis must not be the (periodic) angle")
         chosen = (_coarsen([info[a[0]] for a in spec], [a[1] for a in spec], col_lo, col_hi, n, rep)
                   if spec else ())
-    with _without_hugepage_advice():  # large host arrays (see there)
-        if chosen:
-            src, offsets = _sorted_table(chosen, cols)
-        else:
-            src, offsets = np.arange(n), np.array([0, n], np.int64)
-        sorted_cols = np.zeros((cols.shape[0], src.size + W), np.float32)
-        for c in range(cols.shape[0]):
-            np.take(cols[c], src, out=sorted_cols[c, :src.size])
+    src, offsets, sorted_cols = _sorted_columns(chosen, cols)
     return NDIndex(cols=jnp.asarray(sorted_cols), orig=jnp.asarray(src.astype(np.int32)),
                    offsets=jnp.asarray(offsets.astype(np.int32)), k=int(k), radius_s=float(radius_s),
                    radius_g=float(radius_g), growth=float(growth), d_s=d_s, goal=kind, d_g=d_g,

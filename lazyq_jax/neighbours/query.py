@@ -96,7 +96,7 @@ from lazyq_jax.neighbours.common import (PI, TWO_PI, W, Neighbours, _check_param
                                          _member_words, _mix32, _pick_level, _query_seeds, _sample_members,
                                          _sq, radius_tables, wrap_angle)
 from lazyq_jax.neighbours.nd import (MAX_GRID_AXES, GridAxis, _axes_info, _offsets, _points, _query_cells,
-                                     _ranges, _sorted_table, _table, _table_limit, membership_level_reference)
+                                     _ranges, _sorted_columns, _table, _table_limit, membership_level_reference)
 
 __all__ = ["Phase", "PolicyIndex", "PolicyNeighbours", "ScanIndex", "build_policy_index", "build_scan_index",
            "query_neighbours_scan", "query_policy", "stack_policy_indices"]
@@ -540,13 +540,7 @@ def _layout(cols, n_rows, *, params, grid, his, fracs, capacity, qcols):
     """The arrays and phases of one dataset on a given layout (``grid`` ``()``: scan only)."""
     k, radius_s, radius_g, growth, d_s, kind, d_g, max_level = params
     n = cols.shape[1]
-    if grid:
-        src, offsets = _sorted_table(grid, cols)
-    else:
-        src, offsets = np.arange(n), np.array([0, n], np.int64)
-    sorted_cols = np.zeros((cols.shape[0], src.size + W), np.float32)
-    for c in range(cols.shape[0]):
-        np.take(cols[c], src, out=sorted_cols[c, :src.size])
+    src, offsets, sorted_cols = _sorted_columns(grid, cols)
     phases = []
     if grid:
         caps = list(capacity) if isinstance(capacity, (tuple, list)) else [capacity] * len(his)
