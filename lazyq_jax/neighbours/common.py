@@ -60,7 +60,7 @@ class Neighbours:
 def _without_hugepage_advice():
     """NumPy's large-array ``madvise(MADV_HUGEPAGE)`` off while a host build (the grid's or the
     general search's) allocates, and restored after.  Where the kernel's transparent huge pages
-    have ``defrag = madvise`` (Ubuntu's default), those advised allocations can stall in
+    have ``defrag = madvise`` (Linux's default), those advised allocations can stall in
     synchronous compaction, most in a process's first builds: at N = 1M on the 2-core CPU the
     grid's build took 0.5-1.8 s in some calls with the advice and 0.26-0.33 s in others, a
     steady 0.27-0.31 s without (``experiments/bench_neighbours.py``; docs/performance.md)."""
