@@ -107,6 +107,7 @@ VARIANTS["online_fingertip_offsets_x4_g25"] = VARIANTS["online_fingertip_offsets
 VARIANTS["online_fingertip_offsets_x4_g25_r0.09"] = VARIANTS["online_fingertip_offsets_x4_g25"] + [
     "neighbours.radius_s=0.09"]
 VARIANTS["fingertip_offsets_r0.12"] = FINGERTIP_OFFSETS + ["neighbours.radius_s=0.12"]
+VARIANTS["fingertip_offsets_x4_g25_r0.12"] = VARIANTS["fingertip_offsets_x4_g25"] + ["neighbours.radius_s=0.12"]
 
 
 # The data as arm-long collected it before its preset took the long-horizon task's boxes
