@@ -100,13 +100,14 @@ VARIANTS = {
 VARIANTS["fingertip_offsets_k10"] = FINGERTIP_OFFSETS + ["neighbours.k=10"]
 VARIANTS["fingertip_offsets_r0.04"] = FINGERTIP_OFFSETS + ["neighbours.radius_s=0.04"]
 VARIANTS["fingertip_offsets_r0.09"] = FINGERTIP_OFFSETS + ["neighbours.radius_s=0.09"]
+VARIANTS["fingertip_offsets_r0.12"] = FINGERTIP_OFFSETS + ["neighbours.radius_s=0.12"]
 VARIANTS["fingertip_offsets_move0.08"] = FINGERTIP_OFFSETS + ["collect.arm.action_length=0.08"]
 # online_fingertip_offsets_x4 with every move (random or the agent's) stored with 25 goals, not 100
 VARIANTS["online_fingertip_offsets_x4_g25"] = VARIANTS["online_fingertip_offsets_x4"] + ["collect.n_goals=25"]
-# ... with the radius that won at 1x (fingertip_offsets_r0.09)
+# ... with larger radii (they won at 1x: fingertip_offsets_r0.09, _r0.12), with online rounds
+# and on static4x's data
 VARIANTS["online_fingertip_offsets_x4_g25_r0.09"] = VARIANTS["online_fingertip_offsets_x4_g25"] + [
     "neighbours.radius_s=0.09"]
-VARIANTS["fingertip_offsets_r0.12"] = FINGERTIP_OFFSETS + ["neighbours.radius_s=0.12"]
 VARIANTS["fingertip_offsets_x4_g25_r0.12"] = VARIANTS["fingertip_offsets_x4_g25"] + ["neighbours.radius_s=0.12"]
 
 
