@@ -15,6 +15,12 @@ def test_stable_order_is_numpy_stable_argsort(lo, hi, n):
     np.testing.assert_array_equal(stable_order(key), np.argsort(key, kind="stable"))
 
 
+@pytest.mark.parametrize("hi", [1, 5, 65_536])
+def test_stable_order_with_a_known_bound_is_numpy_stable_argsort(hi):
+    key = np.random.default_rng(hi).integers(0, hi, 5_000).astype(np.int32)
+    np.testing.assert_array_equal(stable_order(key, upper=hi), np.argsort(key, kind="stable"))
+
+
 @pytest.mark.parametrize("n", [1, 256, 257, 100_003])
 def test_cumsum_small_is_exact_up_to_its_bound(n):
     rng = np.random.default_rng(n)

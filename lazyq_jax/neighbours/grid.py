@@ -216,8 +216,7 @@ def _build_on_host(s, g, x, y, x0, y0, h_x, h_y, h_g, *, n_x, n_y, n_g, capacity
     blocks = ig[by_yx].astype(np.int32)[:, None] - np.arange(D, dtype=np.int32)[None, :]
     blocks[blocks < 0] += n_g
     blocks = blocks.ravel()
-    order = (np.argsort(blocks.astype(np.uint16), kind="stable") if n_g <= 1 << 16
-             else stable_order(blocks))
+    order = stable_order(blocks, upper=n_g)
     src = by_yx[order // D]
     # Entries a cell: block b's cell yx holds the points of g-cells b .. b+D-1 in yx.
     n_yx = n_y * n_x
@@ -524,8 +523,7 @@ def search_all(index: GridIndex, key, query_s, query_g, *, mesh: Mesh | None = N
     row = (np.clip(np.floor((qg[:n_real] + PI) * f32(index.n_g / (2 * np.pi))), 0, index.n_g - 1).astype(np.int32)
            * index.n_y + np.clip(np.floor((qs[:n_real, 1] - f32(index.y0)) / f32(index.h_y)), 0,
                                  index.n_y - 1).astype(np.int32))
-    order = (np.argsort(row.astype(np.uint16), kind="stable") if index.n_g * index.n_y <= 1 << 16
-             else stable_order(row)).astype(np.int32)
+    order = stable_order(row, upper=index.n_g * index.n_y).astype(np.int32)
     # Level at which the radii cover everything: |B| = N there.
     real = qs[:n_real] if n_real else qs[:1]
     lo_x, lo_y = min(real[:, 0].min(), index.x0), min(real[:, 1].min(), index.y0)
