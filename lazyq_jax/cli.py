@@ -24,8 +24,12 @@ from lazyq_jax.config import POLICY_FIELDS, Config, ConfigError, override, to_di
 from lazyq_jax.data import DatasetError
 from lazyq_jax.parallel import (enable_compilation_cache, force_host_devices, is_main_process,
                                 make_mesh, maybe_initialize_distributed)
-from lazyq_jax.run import RunDirError, evaluate_run, run
+from lazyq_jax.run import RunDirError, evaluate_run, locked, run
 from lazyq_jax.run.sources import static_data
+
+
+LOCK_HELP = ("one process at a time: a directory another live process is writing is refused at once, "
+             "naming it (pid, host, start, command); a killed process's lock is taken over")
 
 
 def _config(args) -> Config:
@@ -53,7 +57,7 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default="paper", help="one of the task's presets (default paper; "
                    "all tasks have smoke, push and the arms online)")
     p.add_argument("--run-dir", type=Path, default=None, help="output directory (default runs/<preset>, "
-                   "runs/<task>, or runs/study_...)")
+                   f"runs/<task>, or runs/study_...); {LOCK_HELP}")
     p.add_argument("--set", action="append", metavar="FIELD=VALUE",
                    help="override a config field, e.g. train.width=128 (repeatable)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -69,8 +73,9 @@ def cmd_collect(args) -> None:
     config = _config(args)
     run_dir = args.run_dir or _default_dir(args, study=False)
     seeds = list(range(args.first_seed, args.first_seed + args.seeds)) if args.seeds else [config.seed]
-    sd = static_data(tasks.get(config.task), config, run_dir, seeds, mesh=make_mesh(config.parallel),
-                     progress=not args.no_progress)
+    with locked(run_dir):
+        sd = static_data(tasks.get(config.task), config, run_dir, seeds, mesh=make_mesh(config.parallel),
+                         progress=not args.no_progress)
     if is_main_process():
         print(json.dumps(sd.summaries[0] if len(seeds) == 1 else sd.summaries, indent=1))
 
@@ -138,7 +143,8 @@ def main(argv: list[str] | None = None) -> int:
                                        "eval.json, results.json and figures" if name == "evaluate" else
                                        "redraw the figures and animations of a trained run "
                                        "(re-runs the deterministic evaluation)"))
-        p.add_argument("--run-dir", type=Path, required=True, help="a run directory of train or study")
+        p.add_argument("--run-dir", type=Path, required=True,
+                       help=f"a run directory of train or study; {LOCK_HELP}")
         p.add_argument("--methods", default=None, help="only these methods (default: all the run's)")
         p.add_argument("--set", action="append", metavar="FIELD=VALUE",
                        help="override an evaluation setting (eval.*, e.g. eval.seed=3) or one of lazy Q's "

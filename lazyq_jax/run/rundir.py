@@ -1,4 +1,4 @@
-"""A run directory: its layout, its guard against mixing runs, and the method specs.
+"""A run directory: its layout, its lock and guard against mixing runs, and the method specs.
 
 Layout (one seed or many, one method or many: a single run is a study of one seed)::
 
@@ -13,15 +13,21 @@ Layout (one seed or many, one method or many: a single run is a study of one see
     <method>/timings.json         seconds per phase
     results.json, summary.md      per seed and mean with 95 % CI (:mod:`lazyq_jax.stats`)
     figures/                      comparisons; figures/<method>/: the task's figures and a GIF
+    .lock                         who holds the directory (:func:`locked`)
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import fcntl
 import json
 import os
 import re
 import shutil
+import socket
+import sys
+import time
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -122,7 +128,51 @@ def check_seeds(seeds: Sequence[int]) -> tuple[int, ...]:
     return tuple(int(s) for s in seeds)
 
 
-# ----------------------------------------------------------------------------- the guard
+# ----------------------------------------------------------------------------- the lock and the guard
+
+LOCK = ".lock"
+
+
+def _holder(f) -> str:
+    """Who holds the lock whose file ``f`` is, as its holder wrote it (it may still be
+    writing: a few tries)."""
+    for _ in range(20):
+        f.seek(0)
+        try:
+            h = json.loads(f.read())
+            return f"process {h['pid']} on {h['host']} (started {h['started']}: {h['command']})"
+        except (ValueError, KeyError, TypeError):
+            time.sleep(0.05)
+    return "another process (it has not written its name yet)"
+
+
+@contextlib.contextmanager
+def locked(run_dir: Path):
+    """Hold ``run_dir`` for this process while the block runs: a second process (``train``,
+    ``study``, ``evaluate``, ``plot``, ``collect``) on it is refused at once with a
+    :class:`RunDirError` naming the holder (pid, host, start, command line).
+
+    An exclusive ``fcntl.flock`` on ``run_dir/.lock``: the kernel releases it when the
+    holder ends, however it ends (``kill -9`` included), so a dead holder's lock is taken
+    over and its run resumes.  Two processes starting at once: one gets it.  Only JAX
+    process 0 takes it (the others write nothing); the directory is created if missing.
+    """
+    if not is_main_process():
+        yield
+        return
+    run_dir.mkdir(parents=True, exist_ok=True)
+    with open(run_dir / LOCK, "a+") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise RunDirError(f"{run_dir} is in use by {_holder(f)}; wait for it to end (or stop "
+                              "it), or pick another --run-dir") from None
+        f.seek(0)
+        f.truncate()
+        f.write(json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "command": " ".join(sys.orig_argv),
+                            "started": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())}))
+        f.flush()
+        yield
 
 
 def config_diff(a: Any, b: Any, prefix: str = "") -> list[str]:
@@ -133,7 +183,8 @@ def config_diff(a: Any, b: Any, prefix: str = "") -> list[str]:
     return [] if a == b else [prefix.rstrip(".")]
 
 
-def _lookup(tree: Any, dotted: str) -> tuple[bool, Any]:
+def lookup(tree: Any, dotted: str) -> tuple[bool, Any]:
+    """``(found, value)`` of the dotted field ``dotted`` in a nested dict."""
     for part in dotted.split("."):
         if not isinstance(tree, dict) or part not in tree:
             return False, None
@@ -145,7 +196,7 @@ def _added_at_default(stored: dict, record: dict, defaults: dict, dotted: str) -
     """Whether ``dotted`` is a field the stored record lacks (added to lazyq-jax after it was
     made) and ``record`` holds at its default (``defaults``): it was made with what the
     default does."""
-    return not _lookup(stored, dotted)[0] and _lookup(defaults, dotted) == _lookup(record, dotted)
+    return not lookup(stored, dotted)[0] and lookup(defaults, dotted) == lookup(record, dotted)
 
 
 def field_defaults(config: Any) -> dict:
@@ -180,8 +231,8 @@ def open_run(run_dir: Path, config: Config, seeds: Sequence[int], *, resume: boo
     if path.exists() or (run_dir / "study.json").exists() or (run_dir / "checkpoints").exists():
         if overwrite:
             barrier("overwrite: checked")
-            if is_main_process():
-                for child in run_dir.iterdir():
+            if is_main_process():  # all but the lock this process holds (:func:`locked`)
+                for child in (c for c in run_dir.iterdir() if c.name != LOCK):
                     shutil.rmtree(child) if child.is_dir() else child.unlink()
         elif not path.exists():
             raise RunDirError(f"{run_dir} holds a run of an older lazyq-jax; pass --overwrite to "

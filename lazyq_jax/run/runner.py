@@ -44,7 +44,7 @@ from lazyq_jax.parallel import is_main_process, make_mesh, over_seeds, put, repl
 from lazyq_jax.plots import online_curve
 from lazyq_jax.run.results import earlier_methods, method_label, write_results
 from lazyq_jax.run.rundir import (MethodSpec, RunDirError, append_jsonl, as_json, check_methods,
-                                  check_seeds, field_defaults, keep_jsonl, open_method, open_run, parse_method,
+                                  check_seeds, field_defaults, keep_jsonl, locked, open_method, open_run, parse_method,
                                   read_jsonl, write_json)
 from lazyq_jax.run.sources import OnlineRounds, SeedData, log, static_data
 from lazyq_jax.tasks import Task
@@ -362,7 +362,8 @@ def run(config: Config, run_dir: str | Path, *, seeds: Sequence[int] | None = No
     ``resume``: continue the run in ``run_dir`` (same task, seeds and config, up to the
     evaluation settings and more cycles; methods named anew are added, the rows of
     methods not named again are kept).  ``overwrite``: delete it first.  Refused
-    combinations fail before anything in ``run_dir`` is touched.  Returns the contents
+    combinations, and a directory another process holds (:func:`~lazyq_jax.run.rundir.locked`),
+    fail before anything in ``run_dir`` is touched.  Returns the contents
     of ``results.json`` (``{}`` without ``evaluate``).
     """
     seeds = [config.seed] if seeds is None else seeds
@@ -372,26 +373,27 @@ def run(config: Config, run_dir: str | Path, *, seeds: Sequence[int] | None = No
     if config.online.rounds and learned:
         raise ConfigError(f"an online run (online.rounds > 0) grows its data with lazy Q's policy; "
                           f"{learned} would train on round 0's random data only: run them offline")
-    open_run(ctx.run_dir, config, ctx.seeds, resume=resume, overwrite=overwrite)
-    t0 = time.perf_counter()
-    log(f"run: task {ctx.task.name}, seeds {list(ctx.seeds)}, methods {[s.text for s in specs]} -> "
-        f"{ctx.run_dir} ({ctx.mesh.size} {ctx.mesh.devices.flat[0].platform} device"
-        f"{'s' if ctx.mesh.size > 1 else ''})")
-    sd = _data(ctx)
-    write_json(ctx.run_dir / "timings.json", {"data_s": round(time.perf_counter() - t0, 1)})
-    spec_of_data = Spec.of(_seed_slice(sd.stacked, 0))
-    for spec in specs:  # every method can learn from these data, before any trains
-        build_agent(ctx, spec, sd)[0].check_data(spec_of_data)
-    records = {}
-    for spec in specs:
-        records[spec.text] = _run_method(ctx, spec, sd, evaluate=evaluate)
-    if not evaluate or not is_main_process():
-        return {}
-    earlier = earlier_methods(ctx.run_dir, ctx.seeds) if resume else {}
-    results = write_results(ctx.task, ctx.run_dir, ctx.seeds, sd.summaries, records, earlier)
-    log((ctx.run_dir / "summary.md").read_text())
-    log(f"run: done in {time.perf_counter() - t0:.1f} s -> {ctx.run_dir / 'results.json'}")
-    return results
+    with locked(ctx.run_dir):  # before the directory is touched or anything compiles
+        open_run(ctx.run_dir, config, ctx.seeds, resume=resume, overwrite=overwrite)
+        t0 = time.perf_counter()
+        log(f"run: task {ctx.task.name}, seeds {list(ctx.seeds)}, methods {[s.text for s in specs]} -> "
+            f"{ctx.run_dir} ({ctx.mesh.size} {ctx.mesh.devices.flat[0].platform} device"
+            f"{'s' if ctx.mesh.size > 1 else ''})")
+        sd = _data(ctx)
+        write_json(ctx.run_dir / "timings.json", {"data_s": round(time.perf_counter() - t0, 1)})
+        spec_of_data = Spec.of(_seed_slice(sd.stacked, 0))
+        for spec in specs:  # every method can learn from these data, before any trains
+            build_agent(ctx, spec, sd)[0].check_data(spec_of_data)
+        records = {}
+        for spec in specs:
+            records[spec.text] = _run_method(ctx, spec, sd, evaluate=evaluate)
+        if not evaluate or not is_main_process():
+            return {}
+        earlier = earlier_methods(ctx.run_dir, ctx.seeds) if resume else {}
+        results = write_results(ctx.task, ctx.run_dir, ctx.seeds, sd.summaries, records, earlier)
+        log((ctx.run_dir / "summary.md").read_text())
+        log(f"run: done in {time.perf_counter() - t0:.1f} s -> {ctx.run_dir / 'results.json'}")
+        return results
 
 
 def _run_method(ctx: Context, spec: MethodSpec, sd: SeedData, *, evaluate: bool,
@@ -499,27 +501,28 @@ def evaluate_run(run_dir: str | Path, *, methods: Sequence[str] | None = None,
     ``neighbours.subgoal_steps=0``: the one-level step of a two-level run; the results then
     name the settings, ``"acting"``); writes ``eval.json``, ``results.json`` and the figures."""
     ctx = _open_trained(run_dir, overrides, progress)
-    names = list(methods) if methods else trained_methods(ctx.run_dir)
-    if not names:
-        raise RunDirError(f"{run_dir}: no trained method found")
-    specs = check_methods(names)
-    if ctx.acting and not any(spec.name == "lazy" for spec in specs):
-        raise ConfigError(f"{', '.join(ctx.acting)} change lazy Q's policy; "
-                          f"{run_dir} evaluates {', '.join(names)} (add lazy to --methods)")
-    for spec in specs:
-        if not (ctx.run_dir / spec.dirname / "method.json").exists():
-            raise RunDirError(f"{run_dir}: no trained {spec.text} here; its methods: "
-                              f"{', '.join(trained_methods(ctx.run_dir))}")
-    try:
-        sd = _data(ctx)
-    except DatasetError as e:
-        raise RunDirError(f"{run_dir}: cannot evaluate: {e}") from e
-    records = {spec.text: _run_method(ctx, spec, sd, evaluate=True, force_eval=True, figures=figures,
-                                      train=False) for spec in specs}
-    earlier = earlier_methods(ctx.run_dir, ctx.seeds)
-    results = write_results(ctx.task, ctx.run_dir, ctx.seeds, sd.summaries, records, earlier)
-    log((ctx.run_dir / "summary.md").read_text())
-    return results
+    with locked(ctx.run_dir):
+        names = list(methods) if methods else trained_methods(ctx.run_dir)
+        if not names:
+            raise RunDirError(f"{run_dir}: no trained method found")
+        specs = check_methods(names)
+        if ctx.acting and not any(spec.name == "lazy" for spec in specs):
+            raise ConfigError(f"{', '.join(ctx.acting)} change lazy Q's policy; "
+                              f"{run_dir} evaluates {', '.join(names)} (add lazy to --methods)")
+        for spec in specs:
+            if not (ctx.run_dir / spec.dirname / "method.json").exists():
+                raise RunDirError(f"{run_dir}: no trained {spec.text} here; its methods: "
+                                  f"{', '.join(trained_methods(ctx.run_dir))}")
+        try:
+            sd = _data(ctx)
+        except DatasetError as e:
+            raise RunDirError(f"{run_dir}: cannot evaluate: {e}") from e
+        records = {spec.text: _run_method(ctx, spec, sd, evaluate=True, force_eval=True, figures=figures,
+                                          train=False) for spec in specs}
+        earlier = earlier_methods(ctx.run_dir, ctx.seeds)
+        results = write_results(ctx.task, ctx.run_dir, ctx.seeds, sd.summaries, records, earlier)
+        log((ctx.run_dir / "summary.md").read_text())
+        return results
 
 
 @dataclasses.dataclass
