@@ -29,6 +29,8 @@ the runner (:mod:`lazyq_jax.run`), through the lazy agent (:mod:`lazyq_jax.agent
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -129,10 +131,29 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
     dataset replicated (``parallel.put(data, parallel.replicated(mesh))``).
     ``batch_size`` and ``target_batch_size`` must be multiples of the device count.
     """
+    scale = _check_arguments(config, mesh, action_set, state_offsets, goal_offsets, state_scale,
+                             state_dim, goal)
+    network = ValueNetwork(width=config.width, depth=config.depth, output_init=config.value_init,
+                           norm=config.norm,
+                           state_scale=float(scale) if scale.ndim == 0 else tuple(scale.tolist()))
+    setup = _Setup(config=config, network=network, optimizer=optax.adam(config.learning_rate),
+                   # the training forward pass of one device's share (batch norm synchronised)
+                   train_network=network if mesh is None else network.clone(axis_name=AXIS),
+                   mesh=mesh, action_length=action_length, action_set=action_set,
+                   state_offsets=state_offsets, goal_offsets=goal_offsets, scale=scale,
+                   fixed=(state_dim, goal) if state_dim is not None and goal != "from data" else None,
+                   probes=probes, progress=progress)
+    return Trainer(config, network, setup.optimizer, functools.partial(_init, setup),
+                   functools.partial(_epoch, setup), functools.partial(_run_cycle, setup),
+                   functools.partial(_train, setup), functools.partial(_value_fn, setup))
+
+
+def _check_arguments(config, mesh, action_set, state_offsets, goal_offsets, state_scale,
+                     state_dim, goal) -> np.ndarray:
+    """make_train's arguments checked before anything is built; the state scale as an array."""
     if not isinstance(config, TrainConfig):
         raise TypeError(f"make_train needs a TrainConfig, got {type(config).__name__}")
     check_mesh(config, mesh)
-    d = mesh_size(mesh)
     if state_dim is not None and not (isinstance(state_dim, int) and state_dim >= 1):
         raise ValueError(f"state_dim must be an integer >= 1, got {state_dim!r}")
     if not (goal in ("angle", None, "from data") or (isinstance(goal, int) and goal >= 1)):
@@ -151,182 +172,221 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
     scale = np.asarray(state_scale, np.float64)
     if scale.ndim > 1 or not np.all(scale > 0):
         raise ValueError(f"state_scale must be a number > 0 or one per state dimension, got {state_scale!r}")
-    network = ValueNetwork(width=config.width, depth=config.depth, output_init=config.value_init,
-                           norm=config.norm,
-                           state_scale=float(scale) if scale.ndim == 0 else tuple(scale.tolist()))
-    fixed = (state_dim, goal) if state_dim is not None and goal != "from data" else None
+    return scale
 
-    def sizes(data: Transitions | None, who: str):
-        """``(d_s, goal kind)`` of ``data`` (or the fixed ones), checked against each other
-        and the state scale."""
-        if data is None:
-            if fixed is None:
-                raise ValueError(f"{who} needs example data to size the network (init(key, data)), "
-                                 "or make_train(..., state_dim=..., goal=...)")
-            return fixed
-        found = (int(np.shape(data.s)[-1]), goal_kind(data.g))
-        if fixed is not None and found != fixed:
-            raise ValueError(f"{who}: the trainer was built for {_describe(*fixed)} but the data have "
-                             f"{_describe(*found)}; build it for this data (leave state_dim and goal "
-                             "unset to take them from the data)")
-        if scale.ndim == 1 and scale.size != found[0]:
-            raise ValueError(f"{who}: state_scale has {scale.size} entries but the states have "
-                             f"{found[0]} dimensions")
-        return found
 
-    def check_state(state: TrainState, data: Transitions, who: str):
-        d_s, kind = sizes(data, who)
-        width = d_s + (0 if kind is None else 2 if kind == "angle" else kind)
-        stored = int(state.params["Dense_0"]["kernel"].shape[-2])
-        if stored != width:
-            raise ValueError(f"{who}: the state's network takes inputs of width {stored}, but the "
-                             f"data ({_describe(d_s, kind)}) encode to width {width}: the state was "
-                             "trained on data of other sizes")
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Setup:
+    """What :func:`make_train` resolved; every step of the cycle below reads it."""
 
-    # The training forward pass of one device's share (batch norm synchronised over the mesh).
-    train_network = network if mesh is None else network.clone(axis_name=AXIS)
-    optimizer = optax.adam(config.learning_rate)
+    config: TrainConfig
+    network: ValueNetwork
+    train_network: ValueNetwork
+    optimizer: optax.GradientTransformation
+    mesh: Mesh | None
+    action_length: float
+    action_set: str
+    state_offsets: bool
+    goal_offsets: bool
+    scale: np.ndarray
+    fixed: tuple | None  # (state_dim, goal kind) when make_train fixed them
+    probes: Any
+    progress: Callable[[int], None] | None
 
-    def init(key: jax.Array, data: Transitions | None = None) -> TrainState:
-        d_s, kind = sizes(data, "init")
-        if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
-            key = jax.random.key_data(key)
-        key = jnp.asarray(key, jnp.uint32)
-        key, k_init = jax.random.split(key)
-        example_g = None if kind is None else jnp.zeros((1,) if kind == "angle" else (1, kind))
-        variables = network.init(k_init, jnp.zeros((1, d_s)), example_g, train=False)
-        params = variables["params"]
-        return TrainState(params=params, batch_stats=variables.get("batch_stats", {}),
-                          opt_state=optimizer.init(params), key=key, cycle=jnp.int32(0))
 
-    def value_fn(state: TrainState) -> Callable:
-        variables = {"params": state.params, "batch_stats": state.batch_stats}
-        return lambda s, g: network.apply(variables, s, g, train=False)
+def _sizes(setup: _Setup, data: Transitions | None, who: str):
+    """``(d_s, goal kind)`` of ``data`` (or the fixed ones), checked against each other and the
+    state scale."""
+    fixed, scale = setup.fixed, setup.scale
+    if data is None:
+        if fixed is None:
+            raise ValueError(f"{who} needs example data to size the network (init(key, data)), "
+                             "or make_train(..., state_dim=..., goal=...)")
+        return fixed
+    found = (int(np.shape(data.s)[-1]), goal_kind(data.g))
+    if fixed is not None and found != fixed:
+        raise ValueError(f"{who}: the trainer was built for {_describe(*fixed)} but the data have "
+                         f"{_describe(*found)}; build it for this data (leave state_dim and goal "
+                         "unset to take them from the data)")
+    if scale.ndim == 1 and scale.size != found[0]:
+        raise ValueError(f"{who}: state_scale has {scale.size} entries but the states have "
+                         f"{found[0]} dimensions")
+    return found
 
-    def fits(state: TrainState, paths: Transitions, gamma, idx: jax.Array, weights):
-        # paths, gamma: multi_step_transitions' (the data and gamma with target_steps = 1)
-        return local_fits(value_fn(state), paths, idx, gamma=gamma,
-                          batch_size=config.target_batch_size, mesh=mesh, state_offsets=state_offsets,
-                          goal_offsets=goal_offsets, weights=weights,
-                          in_sample=config.target_max == "expectile",
-                          row_goal=config.bootstrap_goal == "row")
 
-    def loss_fn(params, batch_stats, s, g, y):
-        v, updates = train_network.apply({"params": params, "batch_stats": batch_stats}, s, g,
-                                         train=True, mutable=["batch_stats"])
-        if config.loss_expectile == 0.5:  # Eq. (10)
-            squared = (v - y) ** 2
-        else:  # expectile regression (IQL's)
-            squared = expectile_loss(y - v, v - y, config.loss_expectile)
-        return mean_over_mesh(jnp.mean(squared)), updates.get("batch_stats", batch_stats)
+def _check_state(setup: _Setup, state: TrainState, data: Transitions, who: str):
+    d_s, kind = _sizes(setup, data, who)
+    width = d_s + (0 if kind is None else 2 if kind == "angle" else kind)
+    stored = int(state.params["Dense_0"]["kernel"].shape[-2])
+    if stored != width:
+        raise ValueError(f"{who}: the state's network takes inputs of width {stored}, but the "
+                         f"data ({_describe(d_s, kind)}) encode to width {width}: the state was "
+                         "trained on data of other sizes")
 
-    def mean_over_mesh(x):
-        return x if mesh is None else jax.lax.pmean(x, AXIS)
 
-    def device_epoch(state: TrainState, data: Transitions, y: jax.Array, key: jax.Array,
-                     n_valid: jax.Array):
-        # One device's part of an epoch (all of it without a mesh).
-        n = data.r.shape[0]
-        batch = min(config.batch_size, n // d * d)
-        if batch == 0:
-            raise ValueError(f"{n} transitions cannot be split over {d} devices")
-        # The shuffled remainder (< batch rows) is left out of this epoch; so are padded rows.
-        n_batches, live_batches = n // batch, n_valid // batch
-        share = batch // d
-        first = 0 if mesh is None else jax.lax.axis_index(AXIS) * share
-        perm = shuffle(key, n, n_valid)  # the same on every device
+def _init(setup: _Setup, key: jax.Array, data: Transitions | None = None) -> TrainState:
+    d_s, kind = _sizes(setup, data, "init")
+    if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
+        key = jax.random.key_data(key)
+    key = jnp.asarray(key, jnp.uint32)
+    key, k_init = jax.random.split(key)
+    example_g = None if kind is None else jnp.zeros((1,) if kind == "angle" else (1, kind))
+    variables = setup.network.init(k_init, jnp.zeros((1, d_s)), example_g, train=False)
+    params = variables["params"]
+    return TrainState(params=params, batch_stats=variables.get("batch_stats", {}),
+                      opt_state=setup.optimizer.init(params), key=key, cycle=jnp.int32(0))
 
-        def step(carry, i):
-            params, batch_stats, opt_state = carry
-            rows = jax.lax.dynamic_slice_in_dim(perm, i * batch + first, share)
-            g = None if data.g is None else data.g[rows]
-            (loss, new_stats), grads = jax.value_and_grad(loss_fn, has_aux=True)(
-                params, batch_stats, data.s[rows], g, y[rows])
-            updates, new_opt = optimizer.update(mean_over_mesh(grads), opt_state, params)
-            return (optax.apply_updates(params, updates), new_stats, new_opt), loss
 
-        def minibatch(carry, i):
-            # Batches past a padded dataset's end change nothing and are skipped (under
-            # vmap, cond becomes a select: computed, then dropped), so a dataset padded
-            # to a static capacity costs the gradient steps of its valid rows only.
-            return jax.lax.cond(i < live_batches, step, lambda c, _: (c, jnp.float32(0.0)),
-                                carry, i)
+def _value_fn(setup: _Setup, state: TrainState) -> Callable:
+    variables = {"params": state.params, "batch_stats": state.batch_stats}
+    return lambda s, g: setup.network.apply(variables, s, g, train=False)
 
-        (params, batch_stats, opt_state), losses = jax.lax.scan(
-            minibatch, (state.params, state.batch_stats, state.opt_state), jnp.arange(n_batches))
-        state = state.replace(params=params, batch_stats=batch_stats, opt_state=opt_state)
-        return state, jnp.sum(losses) / jnp.maximum(live_batches, 1)
 
-    def epoch(state: TrainState, data: Transitions, y: jax.Array, key: jax.Array,
-              n_valid: jax.Array | None = None):
-        n_valid = valid_rows(data, n_valid)
-        if mesh is None:
-            return device_epoch(state, data, y, key, n_valid)
-        # Everything in and out is replicated; inside, each device works on its share.
-        return jax.shard_map(device_epoch, mesh=mesh, in_specs=P(), out_specs=P(),
-                             check_vma=False)(state, data, y, key, n_valid)
+def _local_fits(setup: _Setup, state: TrainState, paths: Transitions, gamma, idx: jax.Array, weights):
+    """Eq. (5)-(6): each row's local model fitted to its neighbours' brackets under ``state``'s V
+    (``paths``, ``gamma``: :func:`multi_step_transitions`', the data and gamma with target_steps 1)."""
+    config = setup.config
+    return local_fits(_value_fn(setup, state), paths, idx, gamma=gamma,
+                      batch_size=config.target_batch_size, mesh=setup.mesh,
+                      state_offsets=setup.state_offsets, goal_offsets=setup.goal_offsets,
+                      weights=weights, in_sample=config.target_max == "expectile",
+                      row_goal=config.bootstrap_goal == "row")
 
-    def run_cycle(state: TrainState, data: Transitions, idx: jax.Array,
-                  n_valid: jax.Array | None = None, weights: jax.Array | None = None):
-        check_state(state, data, "run_cycle")
-        n_valid = valid_rows(data, n_valid)
-        valid = jnp.arange(data.r.shape[0]) < n_valid
-        key, k_epochs = jax.random.split(state.key)
-        # Each row's h-step transition (h <= target_steps; the data as they are with 1), once a cycle.
-        paths, gamma = multi_step_transitions(data, config.target_steps, config.gamma)
-        # The target network: the parameters frozen at the start of the cycle (Eq. 11-12).
-        if config.target_max == "next":  # the ablation without the lazy model: own s'
-            y = bootstrap_table(value_fn(state), paths, gamma, config.target_batch_size, mesh)
-            alpha = beta = y_nb = None
-            dqn = (y, jnp.zeros(y.shape, bool))
-        else:
-            alpha, beta, y_nb = fits(state, paths, gamma, idx, weights)
-            if config.target_max == "expectile":  # y_nb: the neighbours' values moved to the row
-                dqn = in_sample_target(y_nb, config.target_expectile, weights)
-            else:
-                actions = data.a[idx] if config.target_max == "data" else None
-                dqn = lazy_target(alpha, beta, y_nb, action_length, config.clip, action_set, actions)
 
-        def one_epoch(state, xs):
-            e, k = xs
-            y, active = dqn
-            if config.double_dqn:  # Eq. (13)-(14): the online network picks the action
-                _, beta_online, _ = fits(state, paths, gamma, idx, weights)
-                y, active = double_dqn_target(alpha, beta, beta_online, y_nb, action_length,
-                                              config.clip, action_set)
-            state, loss = epoch(state, data, y, k, n_valid)
-            if progress is not None:
-                jax.debug.callback(progress, e)  # ordered=True needs a single device
-            y_mean = masked_mean(y, valid)
-            stats = (y_mean, jnp.sqrt(masked_mean((y - y_mean) ** 2, valid)),
-                     masked_mean(active.astype(jnp.float32), valid))
-            return state, (loss, stats)
+def _targets(setup: _Setup, frozen: TrainState, data: Transitions, paths: Transitions, gamma,
+             idx: jax.Array, weights):
+    """The cycle's targets from the frozen network (the DQN target network, Eq. 11-12):
+    ``((Y, clip active), (alpha, beta, y_nb))``; Eq. (7)-(8) by default, the ablations by
+    ``train.target_max``.  The fits are None where no local model is fitted."""
+    config = setup.config
+    if config.target_max == "next":  # the ablation without the lazy model: own s'
+        y = bootstrap_table(_value_fn(setup, frozen), paths, gamma, config.target_batch_size,
+                            setup.mesh)
+        return (y, jnp.zeros(y.shape, bool)), (None, None, None)
+    alpha, beta, y_nb = _local_fits(setup, frozen, paths, gamma, idx, weights)
+    if config.target_max == "expectile":  # y_nb: the neighbours' values moved to the row
+        return in_sample_target(y_nb, config.target_expectile, weights), (alpha, beta, y_nb)
+    actions = data.a[idx] if config.target_max == "data" else None
+    return (lazy_target(alpha, beta, y_nb, setup.action_length, config.clip, setup.action_set,
+                        actions), (alpha, beta, y_nb))
 
-        epochs = jnp.arange(config.epochs)
-        state, (losses, (y_mean, y_std, clip_frac)) = jax.lax.scan(
-            one_epoch, state, (epochs, jax.random.split(k_epochs, config.epochs)))
-        state = state.replace(key=key, cycle=state.cycle + 1)
-        metrics = {  # targets: those of the last epoch (all epochs' for DQN are the same)
-            "loss": losses[-1],
-            "loss_first_epoch": losses[0],
-            "target_mean": y_mean[-1],
-            "target_std": y_std[-1],
-            "clip_fraction": clip_frac[-1],
-        }
-        if beta is not None:
-            metrics["beta_norm_mean"] = masked_mean(safe_norm(beta), valid)
-        if probes is not None:
-            metrics["probe_values"] = value_fn(state)(*probes)
-        return state, metrics
 
-    def train(key: jax.Array, data: Transitions, idx: jax.Array, n_valid: jax.Array | None = None,
-              weights: jax.Array | None = None):
-        def cycle(state, _):
-            return run_cycle(state, data, idx, n_valid, weights)
+def _loss(setup: _Setup, params, batch_stats, s, g, y):
+    """Eq. (10): ``mean((V - Y)^2)`` over the minibatch (or IQL's expectile loss)."""
+    v, updates = setup.train_network.apply({"params": params, "batch_stats": batch_stats}, s, g,
+                                           train=True, mutable=["batch_stats"])
+    if setup.config.loss_expectile == 0.5:  # Eq. (10)
+        squared = (v - y) ** 2
+    else:  # expectile regression (IQL's)
+        squared = expectile_loss(y - v, v - y, setup.config.loss_expectile)
+    return _mean_over_mesh(setup, jnp.mean(squared)), updates.get("batch_stats", batch_stats)
 
-        return jax.lax.scan(cycle, init(key, data), None, length=config.cycles)
 
-    return Trainer(config, network, optimizer, init, epoch, run_cycle, train, value_fn)
+def _mean_over_mesh(setup: _Setup, x):
+    return x if setup.mesh is None else jax.lax.pmean(x, AXIS)
+
+
+def _device_epoch(setup: _Setup, state: TrainState, data: Transitions, y: jax.Array,
+                  key: jax.Array, n_valid: jax.Array):
+    """One device's part of an epoch of Adam on Eq. (10) (all of it without a mesh)."""
+    d = mesh_size(setup.mesh)
+    n = data.r.shape[0]
+    batch = min(setup.config.batch_size, n // d * d)
+    if batch == 0:
+        raise ValueError(f"{n} transitions cannot be split over {d} devices")
+    # The shuffled remainder (< batch rows) is left out of this epoch; so are padded rows.
+    n_batches, live_batches = n // batch, n_valid // batch
+    share = batch // d
+    first = 0 if setup.mesh is None else jax.lax.axis_index(AXIS) * share
+    perm = shuffle(key, n, n_valid)  # the same on every device
+
+    def step(carry, i):
+        params, batch_stats, opt_state = carry
+        rows = jax.lax.dynamic_slice_in_dim(perm, i * batch + first, share)
+        g = None if data.g is None else data.g[rows]
+        (loss, new_stats), grads = jax.value_and_grad(
+            functools.partial(_loss, setup), has_aux=True)(
+            params, batch_stats, data.s[rows], g, y[rows])
+        updates, new_opt = setup.optimizer.update(_mean_over_mesh(setup, grads), opt_state, params)
+        return (optax.apply_updates(params, updates), new_stats, new_opt), loss
+
+    def minibatch(carry, i):
+        # Batches past a padded dataset's end change nothing and are skipped (under
+        # vmap, cond becomes a select: computed, then dropped), so a dataset padded
+        # to a static capacity costs the gradient steps of its valid rows only.
+        return jax.lax.cond(i < live_batches, step, lambda c, _: (c, jnp.float32(0.0)),
+                            carry, i)
+
+    (params, batch_stats, opt_state), losses = jax.lax.scan(
+        minibatch, (state.params, state.batch_stats, state.opt_state), jnp.arange(n_batches))
+    state = state.replace(params=params, batch_stats=batch_stats, opt_state=opt_state)
+    return state, jnp.sum(losses) / jnp.maximum(live_batches, 1)
+
+
+def _epoch(setup: _Setup, state: TrainState, data: Transitions, y: jax.Array, key: jax.Array,
+           n_valid: jax.Array | None = None):
+    """One shuffled pass over the data: ``(state, mean loss)``."""
+    n_valid = valid_rows(data, n_valid)
+    if setup.mesh is None:
+        return _device_epoch(setup, state, data, y, key, n_valid)
+    # Everything in and out is replicated; inside, each device works on its share.
+    return jax.shard_map(functools.partial(_device_epoch, setup), mesh=setup.mesh, in_specs=P(),
+                         out_specs=P(), check_vma=False)(state, data, y, key, n_valid)
+
+
+def _run_cycle(setup: _Setup, state: TrainState, data: Transitions, idx: jax.Array,
+               n_valid: jax.Array | None = None, weights: jax.Array | None = None):
+    """One cycle of fitted value iteration: targets from the frozen network, then
+    ``epochs`` epochs of regression towards them, then the cycle's metrics."""
+    config = setup.config
+    _check_state(setup, state, data, "run_cycle")
+    n_valid = valid_rows(data, n_valid)
+    valid = jnp.arange(data.r.shape[0]) < n_valid
+    key, k_epochs = jax.random.split(state.key)
+    # Each row's h-step transition (h <= target_steps; the data as they are with 1), once a cycle.
+    paths, gamma = multi_step_transitions(data, config.target_steps, config.gamma)
+    targets, (alpha, beta, y_nb) = _targets(setup, state, data, paths, gamma, idx, weights)
+
+    def one_epoch(state, xs):
+        e, k = xs
+        y, active = targets
+        if config.double_dqn:  # Eq. (13)-(14): the online network picks the action
+            _, beta_online, _ = _local_fits(setup, state, paths, gamma, idx, weights)
+            y, active = double_dqn_target(alpha, beta, beta_online, y_nb, setup.action_length,
+                                          config.clip, setup.action_set)
+        state, loss = _epoch(setup, state, data, y, k, n_valid)
+        if setup.progress is not None:
+            jax.debug.callback(setup.progress, e)  # ordered=True needs a single device
+        y_mean = masked_mean(y, valid)
+        stats = (y_mean, jnp.sqrt(masked_mean((y - y_mean) ** 2, valid)),
+                 masked_mean(active.astype(jnp.float32), valid))
+        return state, (loss, stats)
+
+    epochs = jnp.arange(config.epochs)
+    state, (losses, (y_mean, y_std, clip_frac)) = jax.lax.scan(
+        one_epoch, state, (epochs, jax.random.split(k_epochs, config.epochs)))
+    state = state.replace(key=key, cycle=state.cycle + 1)
+    metrics = {  # targets: those of the last epoch (all epochs' for DQN are the same)
+        "loss": losses[-1],
+        "loss_first_epoch": losses[0],
+        "target_mean": y_mean[-1],
+        "target_std": y_std[-1],
+        "clip_fraction": clip_frac[-1],
+    }
+    if beta is not None:
+        metrics["beta_norm_mean"] = masked_mean(safe_norm(beta), valid)
+    if setup.probes is not None:
+        metrics["probe_values"] = _value_fn(setup, state)(*setup.probes)
+    return state, metrics
+
+
+def _train(setup: _Setup, key: jax.Array, data: Transitions, idx: jax.Array,
+           n_valid: jax.Array | None = None, weights: jax.Array | None = None):
+    """All ``config.cycles`` cycles in one ``lax.scan``, from :func:`_init`."""
+    def cycle(state, _):
+        return _run_cycle(setup, state, data, idx, n_valid, weights)
+
+    return jax.lax.scan(cycle, _init(setup, key, data), None, length=setup.config.cycles)
 
 
 def valid_rows(data: Transitions, n_valid: jax.Array | None) -> jax.Array:
