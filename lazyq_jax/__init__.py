@@ -44,7 +44,7 @@ from lazyq_jax.tasks.push.collect import collect, dataset_summary
 from lazyq_jax.train import TrainState, make_train
 from lazyq_jax.types import Transitions, pad_transitions
 
-__version__ = "0.2.0"
+__version__ = "0.3.0"  # pyproject.toml says the same (tests/test_readme.py)
 
 __all__ = [
     "Agent", "ArmConfig", "ArmEnv", "CheckpointDamaged", "CheckpointError", "CollectConfig", "Config",
