@@ -1,4 +1,5 @@
-"""``python -m lazyq_jax collect|train|study|evaluate|plot|config``: parse, then call the runner.
+"""``python -m lazyq_jax collect|train|study|evaluate|plot|report|config`` (or ``lazyq ...``):
+parse, then call the runner (``report``: :mod:`lazyq_jax.run.report`).
 
 Every command takes ``--task`` (``push``, ``arm``, ``arm-long``) and ``--preset`` (the
 task's named configs, ``paper`` by default), and any config field can be overridden:
@@ -24,7 +25,7 @@ from lazyq_jax.config import POLICY_FIELDS, Config, ConfigError, override, to_di
 from lazyq_jax.data import DatasetError
 from lazyq_jax.parallel import (enable_compilation_cache, force_host_devices, is_main_process,
                                 make_mesh, maybe_initialize_distributed)
-from lazyq_jax.run import RunDirError, evaluate_run, locked, run
+from lazyq_jax.run import RunDirError, evaluate_run, locked, report, run
 from lazyq_jax.run.sources import static_data
 
 
@@ -107,6 +108,35 @@ def cmd_evaluate(args) -> None:
                                                           f"; figures: {args.run_dir / 'figures'}"))
 
 
+def cmd_report(args) -> int:
+    if args.check or args.update:
+        if args.run_dirs:
+            raise RunDirError("--check and --update read the run directories from the blocks; name no RUN_DIR")
+        differ, errors = report.blocks(args.check or args.update, update=bool(args.update))
+        for line in differ + errors:
+            print(line, file=sys.stderr)
+        return 1 if errors or (differ and args.check) else 0
+    if args.archive:
+        if len(args.run_dirs) != 1:
+            raise RunDirError(f"--archive DEST takes one RUN_DIR, got {len(args.run_dirs)}")
+        copies = report.archive(args.archive, args.run_dirs[0])
+        print(f"{len(copies)} files of {args.run_dirs[0]} -> {args.archive}")
+        return 0
+    text = report.render(args, fmt=args.format)
+    args.out.write_text(text) if args.out else sys.stdout.write(text)
+    return 0
+
+
+REPORT_HELP = """A results table from run directories' results.json (trains nothing): rows are the
+methods x the settings that differ between the runs (runs that agree on all but seed and
+parallel pool their seeds; lazy Q's rows also name evaluate --set's policy settings),
+columns each task rate as mean [95 % CI] over the seeds, the seeds, the budget and the
+training seconds per seed; a line under the table names the task, the seeds, the CI and
+the command.  Markdown report blocks, <!-- report ARGS --> ... <!-- /report -->, hold what
+`report ARGS` writes, ARGS' paths relative to the Markdown file's git root: --check and
+--update regenerate them."""
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m lazyq_jax", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -155,6 +185,23 @@ def main(argv: list[str] | None = None) -> int:
         p.add_argument("--no-progress", action="store_true", help="no progress bars")
         p.set_defaults(func=cmd_evaluate)
 
+    p = sub.add_parser("report", parents=[report.arguments(argparse.ArgumentParser(add_help=False))],
+                       help="a results table (Markdown or JSON) from run directories; trains nothing",
+                       description=REPORT_HELP, usage="%(prog)s RUN_DIR [RUN_DIR ...] [--methods M,...] "
+                       "[--paired] [--per-goal] [--format md|json] [--out FILE]\n"
+                       "       %(prog)s --archive DEST RUN_DIR\n       %(prog)s --check FILE [FILE ...]\n"
+                       "       %(prog)s --update FILE [FILE ...]")
+    p.add_argument("--format", choices=("md", "json"), default="md", help="Markdown (default) or JSON")
+    p.add_argument("--out", type=Path, default=None, help="write the table here (default: stdout)")
+    what = p.add_mutually_exclusive_group()
+    what.add_argument("--archive", type=Path, metavar="DEST", help="copy only the small JSON files report "
+                      "reads of RUN_DIR (run.json, results.json, each method's method.json, timings.json, "
+                      "eval.json; never checkpoints, data or figures) into DEST, e.g. results/<name>")
+    what.add_argument("--check", type=Path, nargs="+", metavar="FILE", help="regenerate every report block "
+                      "of these Markdown files; exit 1 naming each block that differs or cannot be made")
+    what.add_argument("--update", type=Path, nargs="+", metavar="FILE", help="rewrite those blocks in place")
+    p.set_defaults(func=cmd_report)
+
     p = sub.add_parser("config", help="print the resolved config as JSON")
     _add_common(p)
     p.set_defaults(func=lambda a: print(json.dumps(to_dict(_config(a)), indent=1)))
@@ -162,12 +209,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         force_host_devices()  # LAZYQ_HOST_DEVICES, before JAX starts its backends
         enable_compilation_cache()
-        args.func(args)
+        code = args.func(args)
     except ConfigError as e:
         parser.exit(2, f"config error: {e}\n")
     except (CheckpointError, DatasetError, RunDirError) as e:
         parser.exit(2, f"error: {e}\n")
-    return 0
+    return code or 0
 
 
 if __name__ == "__main__":

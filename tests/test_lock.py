@@ -74,9 +74,8 @@ def test_a_held_directory_is_refused_at_once_naming_the_holder(tmp_path):
             assert out.returncode == 2, (command, out.stderr[-2000:])
             assert f"in use by process {pid} on " in out.stderr, out.stderr
             assert snapshot(run_dir) == before, command
-        with pytest.raises(RunDirError, match=f"process {pid} on .*: {sys.executable} -c"):  # in-process too
-            with locked(run_dir):
-                pass
+        with pytest.raises(RunDirError, match=f"process {pid} on .*: {sys.executable} -c"), locked(run_dir):
+            pass  # in-process too
     finally:
         holder.kill()
         holder.wait()
@@ -119,9 +118,8 @@ def test_overwrite_keeps_the_lock(tmp_path):
         (tmp_path / "data").mkdir()
         open_run(tmp_path, config, [0], resume=False, overwrite=True)
         assert sorted(p.name for p in tmp_path.iterdir()) == [LOCK, "run.json"]
-        with pytest.raises(RunDirError, match=f"process {os.getpid()} on "):  # still held
-            with locked(tmp_path):
-                pass
+        with pytest.raises(RunDirError, match=f"process {os.getpid()} on "), locked(tmp_path):
+            pass  # still held
 
 
 def test_a_run_killed_mid_training_resumes(tmp_path):
