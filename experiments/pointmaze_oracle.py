@@ -1,7 +1,7 @@
 """Is lazy Q's bound on the maze its value or its operator?  Lazy Q's policy and Bellman
 operator fed with the walls-aware optimal value ``V*`` instead of the trained one.
 
-Two measurements on one trained lazy run (its first seed, its data, its neighbourhoods):
+Measurements on one trained lazy run (its first seed, its data, its neighbourhoods):
 
 * **Oracle policy.**  Eq. (9)'s greedy action from the local fit over the dataset, with the
   neighbours' bootstrapped values ``y_j = r_j + gamma (1 - done_j) V(s'_j, g_j)`` taken from
@@ -16,17 +16,10 @@ Two measurements on one trained lazy run (its first seed, its data, its neighbou
   (pointmaze_walls.py): the mean error of ``T V*`` is the operator's own bias (Eq. 7's max,
   the linear model across walls-shaped values), that of ``T V`` against ``V`` is how far
   training is from its fixed point.
-* **Noise probe** (``--probe-k``): the bias of that target when ``V*`` carries noise, for
-  other ``k`` and a double estimator, and how far the target extrapolates: ``sum_j |w_j|``
-  of the target as a linear function of the neighbours' values.
-
 * **Radius probe** (``--probe-radius``): ``T(V*) - V*`` and ``T(V_line) - V_line`` on the
   wall pairs by the state's distance from a wall, for the exact Bellman backup (OGBench's
   env step over a grid of box actions) and for Eq. (8)'s target at other state radii: how
-  much a backup tells the walls-aware value from the straight-line one.  With
-  ``--probe-query-goal`` also the backup of ``train.bootstrap_goal="row"`` (state-space
-  neighbourhoods, each neighbour's next state valued at the row's goal).
-
+  much a backup tells the walls-aware value from the straight-line one.
 * **Two-level step** (``--subgoal-steps H``): the lazy policy with ``neighbours.subgoal_steps
   = H`` (:func:`lazyq_jax.policy.lazy_subgoals`) on the run's data with the run's V or the
   ``--values``' (``--only-values``), without retraining.
@@ -36,23 +29,13 @@ accurate to a few steps).
 
     .venv/bin/python experiments/pointmaze_oracle.py runs/pm_goaloff \
         --values runs/pm_ogb:gcivl:width=128:steps=114139          # policy and fixed point
-    .venv/bin/python experiments/pointmaze_oracle.py runs/pm_goaloff --skip-fixed-point \
-        --skip-policy --probe-k 20 40 --out runs/pm_goaloff/probe.json   # the noise probe
     .venv/bin/python experiments/pointmaze_oracle.py runs/pm_vinit --skip-fixed-point \
         --skip-policy --probe-radius 0.5 0.25 0.15 0.1 --pairs 100000 \
         --out runs/pm_vinit/radius_probe.json                          # the radius probe
-    .venv/bin/python experiments/pointmaze_oracle.py runs/pm_host_s2 --skip-fixed-point \
-        --skip-policy --probe-radius 0.5 0.25 --probe-query-goal --pairs 100000 \
-        --out runs/pm_host_s2/qg_probe.json                   # the same, and at the row's goal
-    .venv/bin/python experiments/pointmaze_oracle.py runs/pm_rl10 --skip-fixed-point --only-values \
-        --values runs/pm_qrl_eq_s0:qrl:width=128:steps=11689 --distance-values \
-        --out runs/pm_qrl_eq_s0/oracle.json                            # lazy policy on QRL's d
-    .venv/bin/python experiments/pointmaze_oracle.py runs/pm_rl10 --skip-fixed-point \
-        --query-goal-only --values runs/pm_qrl_eq_s0:qrl:width=128:steps=11689 \
-        --out runs/pm_qrl_eq_s0/oracle_qg.json       # the run's V and QRL's d at the query's goal
     .venv/bin/python experiments/pointmaze_oracle.py runs/pm_lazy_s0 --skip-fixed-point \
-        --subgoal-only --subgoal-steps 25 --out runs/pm_lazy_s0/oracle_sub.json
-                                   # the two-level step (neighbours.subgoal_steps) on the run's V
+        --only-values --values runs/pm_ogb:gcivl:width=128:steps=114139 --subgoal-steps 25 \
+        --out runs/pm_lazy_s0/oracle_sub.json      # the two-level step on GCIVL's V
+    .venv/bin/python experiments/pointmaze_oracle.py --table runs/pm_*/oracle_sub.json   # over seeds
 """
 
 from __future__ import annotations
@@ -72,21 +55,15 @@ from scipy.stats import spearmanr
 
 from lazyq_jax import agents
 from lazyq_jax.keys import purpose_key
-from lazyq_jax.local_model import (
-    fit_local_linear,
-    fit_with_offsets,
-    greedy_action,
-    neighbour_offsets,
-)
+from lazyq_jax.local_model import fit_with_offsets, neighbour_offsets
 from lazyq_jax.neighbours import find_neighbours
-from lazyq_jax.neighbours.query import query_policy, stack_policy_indices
+from lazyq_jax.neighbours.query import stack_policy_indices
 from lazyq_jax.policy import LazyPolicy, policy_index
 from lazyq_jax.run import load_run
 from lazyq_jax.stats import format_ci, t_interval
 from lazyq_jax.targets import (bootstrap_values, evaluate_in_batches, in_sample_target, lazy_target,
                                multi_step_transitions)
 from lazyq_jax.tasks.pointmaze.maze import MAZE_UNIT, STEP_SCALE, get_maze
-from lazyq_jax.tasks.pointmaze.plots import rollouts_figure
 
 sys.path.insert(0, str(Path(__file__).parent))
 from pointmaze_walls import RADIUS, WALL_STEPS, Geodesic, value_of  # noqa: I001
@@ -185,81 +162,6 @@ def fixed_point(args, agent, data, seed, n, s, g, geo, gamma, config, loaded, ta
         print(f"T({name}): {json.dumps(entry)}", flush=True)
 
 
-def target_weights(a_nb, offsets, c, data_actions=False):
-    """``sum_j |w_j|`` of Eq. (7)'s target ``alpha + c sign(beta) . beta = sum_j w_j y_j`` as a
-    linear function of the neighbours' values, for each box corner (the sign pattern held
-    fixed), averaged over the corners: ``[rows]``.  A DQN target has ``sum |w| = 1``; above
-    ``1 / gamma`` the backup is no contraction in the max norm.  ``data_actions``: the
-    target ``alpha + beta . a_j`` at each neighbour's own action, averaged over them."""
-    x = np.concatenate([np.ones(a_nb.shape[:-1] + (1,)), a_nb, offsets], -1)
-    hat = np.linalg.solve(np.einsum("nki,nkj->nij", x, x) + 1e-9 * np.eye(x.shape[-1]),
-                          np.swapaxes(x, 1, 2))  # [rows, p, k]: coefficients = hat @ y
-    n_a = a_nb.shape[-1]
-    if data_actions:
-        w = hat[:, :1] + np.einsum("nja,nak->njk", a_nb, hat[:, 1:1 + n_a])  # [rows, k_j, k]
-        return np.abs(w).sum(-1).mean(-1)
-    total = 0.0
-    corners = np.stack(np.meshgrid(*[[-1.0, 1.0]] * n_a), -1).reshape(-1, n_a)
-    for corner in corners:
-        e = np.zeros(x.shape[-1])
-        e[0], e[1:1 + n_a] = 1.0, c * corner
-        total = total + np.abs(np.einsum("p,npk->nk", e, hat)).sum(-1)
-    return total / len(corners)
-
-
-def noise_probe(args, agent, data, seed, n, s, g, geo, gamma, config, v_star_next, results):
-    """The bias of Eq. (8)'s target from noise in the bootstrapped values: ``T(V* + noise)``
-    against ``V*`` for value noise of standard deviation ``sigma`` (each row's ``V(s', g)``,
-    the trained network's fit error is ~0.2), for each ``k``, and for a double estimator
-    inside the neighbourhood (Eq. 13-14's idea: one half of the neighbours picks the box
-    corner, the other values it, and the other way round, averaged)."""
-    nc = config.neighbours
-    rng = np.random.default_rng(0)
-    rows, v_star, wall = scored_rows(rng, args.pairs, s, g, geo, gamma)
-    r, done = jnp.asarray(np.asarray(data.r[:n])), jnp.asarray(np.asarray(data.done[:n]))
-    noise = rng.standard_normal(n).astype(np.float32)
-    c, action_set = agent.problem.action_length, agent.problem.action_set
-    out = {}
-    for k in args.probe_k:
-        t = time.perf_counter()
-        nb = find_neighbours(purpose_key(seed, "neighbours"), s, g, s[rows], g[rows], k=k,
-                             radius_s=nc.radius_s, radius_g=nc.radius_g, growth=nc.growth)
-        ii = jnp.asarray(nb.idx)
-        offsets = neighbour_offsets(jnp.asarray(s)[ii], jnp.asarray(s[rows]), jnp.asarray(g)[ii],
-                                    jnp.asarray(g[rows]))
-        a_nb = jnp.asarray(np.asarray(data.a[:n]))[ii]
-        print(f"k = {k}: neighbourhoods {time.perf_counter() - t:.0f} s", flush=True)
-        a_np, off_np = np.asarray(a_nb, np.float64), np.asarray(offsets, np.float64)
-        for model, m in (("action", 0), ("action+state", 2), ("action+state+goal", 4),
-                         ("action+state+goal, data actions", 4)):
-            data_actions = "data actions" in model
-            w = target_weights(a_np[::10], off_np[::10, :, :m], c, data_actions)  # every 10th row
-            out[f"k={k} {model} sum|w|"] = entry = {
-                "mean": float(w.mean()), "median": float(np.median(w)),
-                "p90": float(np.percentile(w, 90)), "gamma_sum_above_1": float((gamma * w > 1).mean())}
-            print(f"k = {k}, {model}: sum |w_j| of the target {json.dumps(entry)}", flush=True)
-        for sigma in args.probe_sigma:
-            y = np.asarray(bootstrap_values(r, done, jnp.asarray(v_star_next + sigma * noise), gamma))
-            y_nb = jnp.asarray(y)[ii]
-            alpha, beta = fit_local_linear(a_nb, y_nb, offsets=offsets)
-            single, _ = lazy_target(alpha, beta, y_nb, c, True, action_set)
-            halves = [fit_local_linear(a_nb[:, h::2], y_nb[:, h::2], offsets=offsets[:, h::2])
-                      for h in (0, 1)]
-            double = 0.5 * sum(a_e + jnp.sum(b_e * greedy_action(b_p, c, action_set), -1)
-                               for (_, b_p), (a_e, b_e) in (halves, halves[::-1]))
-            double = jnp.minimum(double, jnp.max(y_nb, -1))
-            # the maximum over the neighbourhood's own actions instead of the box's corners
-            in_data = jnp.minimum(alpha + jnp.max(jnp.einsum("nka,na->nk", a_nb, beta), -1),
-                                  jnp.max(y_nb, -1))
-            for name, target in (("single", single), ("double", double), ("data actions", in_data)):
-                err = np.asarray(target, np.float64) - v_star
-                out[f"k={k} sigma={sigma} {name}"] = entry = {
-                    "mean_error": float(err.mean()), "mean_error_wall": float(err[wall].mean()),
-                    "mean_abs_error": float(np.abs(err).mean())}
-                print(f"k = {k}, sigma = {sigma}, {name}: {json.dumps(entry)}", flush=True)
-    results["noise_probe"] = out
-
-
 def exact_backup(maze, s, g, wall, clear, geo, gamma, v_star, v_line, grid=11):
     """The true Bellman backup ``-1 + gamma max_a V(step(s, a), g)`` (OGBench's env step,
     an ``grid x grid`` grid of box actions) of ``V*`` and ``V_line`` against themselves, on
@@ -317,12 +219,6 @@ def radius_probe(args, agent, data, seed, n, s, g, s2, geo, gamma, config, table
             err = np.asarray(target, np.float64) - ref
             entry[name] = errors_by_wall_distance(err, wall, clear)
         print(f"{key} ({time.perf_counter() - t:.0f} s): {json.dumps(entry)}", flush=True)
-    if args.probe_query_goal:
-        for radius_s in args.probe_radius:
-            out[f"query goal, radius_s={radius_s}"] = entry = query_goal_backup(
-                seed, s, g, s2, rows, wall, clear, v_star, v_line, geo, gamma, a_all, radius_s, nc,
-                c, action_set)
-            print(f"query goal, radius_s={radius_s}: {json.dumps(entry)}", flush=True)
     results["radius_probe"] = out
 
 
@@ -333,58 +229,6 @@ def errors_by_wall_distance(err, wall, clear) -> dict:
     parts += [(f"wall pairs, state {lo}-{hi} from a wall", wall & (clear >= lo) & (clear < hi))
               for lo, hi in itertools.pairwise(CLEARANCE)]
     return {part: {"rows": int(m.sum()), "mean_error": float(err[m].mean())} for part, m in parts if m.any()}
-
-
-def query_goal_backup(seed, s, g, s2, rows, wall, clear, v_star, v_line, geo, gamma, a_all, radius_s,
-                      nc, c, action_set):
-    """``T(V) - V`` for the backup at the row's own goal: neighbourhoods in state space only
-    (k rows within ``radius_s``, any goal), ``y_j = -1 + gamma V(s'_j, g)`` at the *row's*
-    goal ``g`` (none of the scored rows is at its goal), the local model with state offsets,
-    Eq. (8) over the box.  No goal offsets: the goal is the same for every neighbour."""
-    t = time.perf_counter()
-    nb = find_neighbours(purpose_key(seed, "neighbours"), s, None, s[rows], None, k=nc.k,
-                         radius_s=radius_s, radius_g=nc.radius_g, growth=nc.growth)
-    ii = np.asarray(nb.idx)
-    nxt = s2[ii].reshape(-1, 2)
-    gg = np.repeat(g[rows], ii.shape[1], axis=0)
-    offsets = neighbour_offsets(jnp.asarray(s)[ii], jnp.asarray(s[rows]))
-    level = np.asarray(nb.level)
-    entry = {"level0": float((level == 0).mean()), "mean_level": float(level.mean())}
-    for name, v_next, ref in (("V* (walls)", value_of(geo.length(nxt, gg), gamma), v_star),
-                              ("V_line (no walls)", value_of(np.abs(nxt - gg).max(1), gamma), v_line)):
-        y_nb = jnp.asarray((-1.0 + gamma * v_next).reshape(ii.shape), jnp.float32)
-        alpha, beta, _ = fit_with_offsets(a_all[ii], y_nb, offsets=offsets)
-        target, _ = lazy_target(alpha, beta, y_nb, c, True, action_set)
-        err = np.asarray(target, np.float64) - ref
-        entry[name] = errors_by_wall_distance(err, wall, clear)
-    entry["seconds"] = round(time.perf_counter() - t, 1)
-    return entry
-
-
-def query_goal_act(value_fn, gamma: float, action_length: float, action_set: str):
-    """Eq. (9)'s greedy step with the neighbours' values taken at the *query's* goal:
-    neighbourhoods in state space only (k rows within the state radius, any goal), each
-    neighbour's ``y_j = -1 + gamma V(s'_j, g)`` computed at every step from ``value_fn``
-    (OGBench's relabelled reward is -1 until the goal *is* the state, never for a query goal),
-    and the local model with state offsets (``y_j ~ alpha + beta.a_j + c.(s_j - s)``).  The
-    tabulated policy instead reads ``y_j`` at the row's own goal ``g_j``, within the goal
-    radius of ``g``, and absorbs ``g_j - g`` with goal offsets.  ``act_of(p)`` for the task's
-    evaluation; ``p``: ``index`` (a state-only policy index), ``actions``, ``states``, ``next``."""
-
-    def act_of(p):
-        def act(key, s, g):
-            nb = query_policy(p["index"], key, s, None)
-            rows = jnp.maximum(nb.idx, 0)
-            s2 = p["next"][rows]
-            gq = jnp.broadcast_to(g[:, None, :], s2.shape)
-            y = -1.0 + gamma * value_fn(s2.reshape(-1, s2.shape[-1]),
-                                        gq.reshape(-1, gq.shape[-1])).reshape(rows.shape)
-            offsets = neighbour_offsets(p["states"][rows], s)
-            _, beta = fit_local_linear(p["actions"][rows], y, None, offsets=offsets)
-            found = nb.level >= 0
-            return jnp.where(found[:, None], greedy_action(beta, action_length, action_set), 0.0)
-        return act
-    return act_of
 
 
 def subgoal_policy(value_fn, p: dict, action_length: float, action_set: str, steps: int) -> LazyPolicy:
@@ -433,33 +277,17 @@ def main() -> None:
                    help="also the policy with other trained values (e.g. GCIVL's V of the same seed)")
     p.add_argument("--only-values", action="store_true",
                    help="evaluate the policy only with the --values tables (not V*, V_line, the run's V)")
-    p.add_argument("--distance-values", action="store_true",
-                   help="the --values are negated distances in steps (QRL's V = -d): also their "
-                        "discounted return -(1 - gamma^d) / (1 - gamma)")
-    p.add_argument("--query-goal", action="store_true",
-                   help="also the greedy step with each learned V (the run's and --values') taken "
-                        "at the query's goal, neighbourhoods in state space (query_goal_act)")
-    p.add_argument("--query-goal-only", action="store_true",
-                   help="evaluate only the --query-goal policies (none of the tabulated ones)")
     p.add_argument("--subgoal-steps", type=int, nargs="*", default=[],
                    help="also the two-level step (subgoal_policy) with each learned V, a subgoal this "
                         "many steps ahead on the neighbours' trajectories (HIQL's: 25)")
-    p.add_argument("--figures", default=None, metavar="DIR",
-                   help="draw each --subgoal-steps policy's rollouts into DIR")
     p.add_argument("--subgoal-only", action="store_true",
                    help="evaluate only the --subgoal-steps policies")
     p.add_argument("--skip-fixed-point", action="store_true")
     p.add_argument("--skip-policy", action="store_true")
-    p.add_argument("--probe-k", type=int, nargs="*", default=[],
-                   help="neighbourhood sizes for the value-noise probe (none: no probe)")
     p.add_argument("--probe-radius", type=float, nargs="*", default=[],
                    help="state radii for the fixed-point probe of V* and V_line (none: no probe)")
     p.add_argument("--probe-radius-g", type=float, nargs="*", default=[],
                    help="goal radii for that probe (default: the run's)")
-    p.add_argument("--probe-query-goal", action="store_true",
-                   help="with --probe-radius: also the backup at the row's own goal (state-only "
-                        "neighbourhoods, y_j = -1 + gamma V(s'_j, g))")
-    p.add_argument("--probe-sigma", type=float, nargs="*", default=[0.0, 0.1, 0.2, 0.4])
     p.add_argument("--out", default=None, help="oracle.json (default: RUN_DIR/oracle.json)")
     args = p.parse_args()
     if args.table is not None:
@@ -505,11 +333,7 @@ def main() -> None:
         fn = other.agent.value_fn(other.state())
         name = f"V of {method.split(':steps=')[0]}"
         learned[name] = fn
-        v_other = at_next(fn)
-        others[name] = table(v_other)
-        if args.distance_values:  # d = -V steps -> the discounted return of d steps of reward -1
-            d = np.maximum(-v_other.astype(np.float64), 0.0)
-            others[name + ", discounted"] = table((-(1.0 - gamma ** d) / (1.0 - gamma)).astype(np.float32))
+        others[name] = table(at_next(fn))
     tables.update(others)
     results: dict = {"run_dir": args.run_dir, "seed": seed, "policy": {}, "fixed_point": {}}
 
@@ -527,9 +351,6 @@ def main() -> None:
         results["fixed_point"]["target_steps"] = steps
         fixed_point(args, agent, data, seed, n, s, g, geo, gamma, config, loaded, fp_tables, results)
 
-    if args.probe_k:
-        noise_probe(args, agent, data, seed, n, s, g, geo, gamma, config, v_star_next, results)
-
     if args.probe_radius:
         radius_probe(args, agent, data, seed, n, s, g, s2, geo, gamma, config, tables, results)
 
@@ -538,22 +359,21 @@ def main() -> None:
         nb_flat = dataclasses.replace(agent.config.neighbours, subgoal_steps=0)
         agent = agents.make("lazy", dataclasses.replace(agent.config, neighbours=nb_flat), problem=agent.problem)
     base = agent.policies(loaded.states, sd.stacked, sd.n_valid)
-    no_tables = args.skip_policy or args.query_goal_only or args.subgoal_only
-    evaluated = {} if no_tables else others if args.only_values else tables
-    for name, y in evaluated.items():
-        values = np.zeros(np.shape(base.values), np.float32)
-        values[0, :n] = y
-        policy = base.replace(values=jnp.asarray(values))
+
+    def evaluate(label, policy):  # OGBench's protocol for seed 0, with Eq. (9)'s lazy_policy
         t = time.perf_counter()
         ev = loaded.task.evaluate(agent.act, policy, config, [seed])
-        res = ev.per_seed[0]["tasks"]
-        results["policy"][name] = res
-        print(f"policy with {name}: {loaded.task.log_line(ev.per_seed[0])} "
+        results["policy"][label] = ev.per_seed[0]["tasks"]
+        print(f"policy with {label}: {loaded.task.log_line(ev.per_seed[0])} "
               f"({time.perf_counter() - t:.0f} s)", flush=True)
-    query_goal = (args.query_goal or args.query_goal_only) and not args.skip_policy
-    sg = None
-    if query_goal or (args.subgoal_steps and not args.skip_policy):
-        # the state-space neighbour index and the arrays both per-step policies read (one seed)
+
+    no_tables = args.skip_policy or args.subgoal_only
+    for name, y in ({} if no_tables else others if args.only_values else tables).items():
+        values = np.zeros(np.shape(base.values), np.float32)
+        values[0, :n] = y
+        evaluate(name, base.replace(values=jnp.asarray(values)))
+    if args.subgoal_steps and not args.skip_policy:
+        # the state-space neighbour index and the arrays the two-level step reads (one seed)
         nc = config.neighbours
         index = stack_policy_indices([policy_index(s, None, k=nc.k, radius_s=nc.radius_s,
                                                    radius_g=nc.radius_g, growth=nc.growth,
@@ -561,30 +381,10 @@ def main() -> None:
         sg = {"index": index, "actions": jnp.asarray(np.asarray(data.a[:n]))[None],
               "states": jnp.asarray(s)[None], "next": jnp.asarray(s2)[None],
               "last": jnp.asarray(np.asarray(data.traj_last[:n]))[None]}
-    if query_goal:
-        qg = {k: v for k, v in sg.items() if k != "last"}
-        for name, fn in learned.items():
-            act_of = query_goal_act(fn, gamma, agent.problem.action_length, agent.problem.action_set)
-            t = time.perf_counter()
-            ev = loaded.task.evaluate(act_of, qg, config, [seed])
-            results["policy"][name + ", at the query's goal"] = ev.per_seed[0]["tasks"]
-            print(f"policy with {name} at the query's goal: {loaded.task.log_line(ev.per_seed[0])} "
-                  f"({time.perf_counter() - t:.0f} s)", flush=True)
-    if args.subgoal_steps and not args.skip_policy:
         for steps in args.subgoal_steps:
             for name, fn in learned.items():
-                policy = subgoal_policy(fn, sg, agent.problem.action_length, agent.problem.action_set, steps)
-                t = time.perf_counter()
-                ev = loaded.task.evaluate(agent.act, policy, config, [seed])  # Eq. (9)'s lazy_policy
-                label = f"{name}, subgoals {steps} steps ahead"
-                results["policy"][label] = ev.per_seed[0]["tasks"]
-                if args.figures:
-                    one = jax.tree.map(lambda x: x[0], ev.rollouts["tasks"])
-                    slug = "".join(c if c.isalnum() else "_" for c in label).strip("_")
-                    rollouts_figure(get_maze(config.collect.maze), one, ev.per_seed[0],
-                                    Path(args.figures) / f"{slug}_rollouts.png")
-                print(f"policy with {label}: {loaded.task.log_line(ev.per_seed[0])} "
-                      f"({time.perf_counter() - t:.0f} s)", flush=True)
+                evaluate(f"{name}, subgoals {steps} steps ahead",
+                         subgoal_policy(fn, sg, agent.problem.action_length, agent.problem.action_set, steps))
     out = Path(args.out) if args.out else Path(args.run_dir) / "oracle.json"
     out.write_text(json.dumps(results, indent=1))
     print(f"-> {out}")
