@@ -8,14 +8,15 @@ same data, seeds and evaluation, each trained for the same wall-clock time on th
    this machine: one block of ``--calibrate`` steps after compilation, on seed 0's dataset,
    all seeds vmapped as in the study.
 3. The baselines trained for ``budget x steps/s`` steps into the same run directory
-   (``--resume``: finished methods are kept), then one table.
+   (``--resume``: finished methods are kept); ``python -m lazyq_jax report RUN_DIR`` then
+   writes the table.
 
     .venv/bin/python experiments/pointmaze_budget.py --run-dir runs/pointmaze_budget --seeds 1
     .venv/bin/python experiments/pointmaze_budget.py --run-dir R --seconds 600 --methods gcivl,gcbc
     .venv/bin/python experiments/pointmaze_budget.py --run-dir R --seeds 3 --methods gcivl --max-seconds 150
 
-OGBench trains 1M steps of batch 1024; the fraction of that budget each baseline got is in the
-table.  Results: docs/pointmaze.md.
+OGBench trains 1M steps of batch 1024; the fraction of that budget each baseline got is printed
+and kept in ``RUN_DIR/budget.json``.  Results: docs/pointmaze.md.
 """
 
 from __future__ import annotations
@@ -26,13 +27,11 @@ import time
 from pathlib import Path
 
 import jax
-import numpy as np
 
 from lazyq_jax import agents, tasks
 from lazyq_jax.config import override
 from lazyq_jax.run import run
 from lazyq_jax.run.sources import static_data
-from lazyq_jax.stats import format_ci
 
 OGBENCH_STEPS = 1_000_000
 
@@ -112,22 +111,7 @@ def main() -> None:
     methods = specs if args.seconds is not None else ["lazy", *specs]
     run(config, run_dir, seeds=seeds, methods=methods, resume=True, progress=False)
 
-    results = json.loads((run_dir / "results.json").read_text())
-    print(f"\npointmaze ({config.collect.maze}), seeds {seeds}: success rate over OGBench's 5 tasks")
-    print("| method | success | task 1 | task 2 | task 3 | task 4 | task 5 | training s |")
-    print("|---|---|---|---|---|---|---|---|")
-    for spec, m in results["methods"].items():
-        rows = m["per_seed"]
-        cells = []
-        for key in ("success_rate", "task1", "task2", "task3", "task4", "task5"):
-            if key in m["summary"]:
-                cells.append(format_ci(m["summary"][key]))
-            elif all(key in r for r in rows):
-                cells.append(f"{np.mean([r[key] for r in rows]):.1%}")
-            else:
-                cells.append("–")
-        print(f"| {spec} | " + " | ".join(cells) + f" | {m['timings'].get('train_s', 0):.0f} |")
-
+    print(f"the table: .venv/bin/python -m lazyq_jax report {run_dir}")
 
 if __name__ == "__main__":
     main()
