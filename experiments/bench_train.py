@@ -14,12 +14,11 @@ of the paper's 10 x 10 epochs over ``--rows`` rows (training only).
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _common import timed  # the script's own folder is on sys.path
 
 from lazyq_jax.config import TrainConfig
 from lazyq_jax.train import make_train
@@ -27,15 +26,8 @@ from lazyq_jax.types import Transitions
 
 
 def sgemm_rate(n=2048, repeats=5):
-    a = jnp.ones((n, n), jnp.float32)
-    f = jax.jit(lambda x: x @ x)
-    f(a).block_until_ready()
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        f(a).block_until_ready()
-        times.append(time.perf_counter() - t)
-    return 2 * n**3 / statistics.median(times) / 1e9
+    _, _, sec = timed(jax.jit(lambda x: x @ x), jnp.ones((n, n), jnp.float32), repeats=repeats)
+    return 2 * n**3 / sec / 1e9
 
 
 def dense_flops_per_row(width: int, depth: int, n_in: int = 4) -> float:
@@ -61,22 +53,14 @@ def main():
     print(f"sgemm 2048^3: {peak:.0f} GFLOP/s  ({jax.devices()[0].platform}, "
           f"{jax.local_device_count()} device(s))")
     print(f"{'width':>5} {'batch':>6} | {'epoch s':>8} {'GFLOP/s':>8} {'of sgemm':>8} | "
-          f"{'100 epochs':>10} | compile s")
+          f"{'100 epochs':>10} | first s (compile + run)")
     for width in args.widths:
         for batch in args.batch_sizes:
             trainer = make_train(TrainConfig(width=width, batch_size=batch), action_length=0.1)
-            state = trainer.init(jax.random.PRNGKey(0))
+            state = trainer.init(jax.random.PRNGKey(0), data)
             key = jax.random.PRNGKey(1)
-            t = time.perf_counter()
-            compiled = jax.jit(trainer.epoch).lower(state, data, y, key).compile()
-            compile_s = time.perf_counter() - t
+            _, compile_s, sec = timed(jax.jit(trainer.epoch), state, data, y, key, repeats=args.repeats)
             flops = dense_flops_per_row(width, trainer.config.depth) * (n // batch) * batch
-            times = []
-            for _ in range(args.repeats):
-                t = time.perf_counter()
-                jax.block_until_ready(compiled(state, data, y, key))
-                times.append(time.perf_counter() - t)
-            sec = statistics.median(times)
             rate = flops / sec / 1e9
             print(f"{width:>5} {batch:>6} | {sec:>8.2f} {rate:>8.1f} {rate / peak:>8.1%} | "
                   f"{100 * sec:>9.0f}s | {compile_s:.1f}")
