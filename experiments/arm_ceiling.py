@@ -30,10 +30,10 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+from _common import rate_keys, rates_table  # the script's own folder is on sys.path
 
 from lazyq_jax import tasks
 from lazyq_jax.config import Config, override
-from lazyq_jax.stats import format_ci, t_interval
 from lazyq_jax.tasks.arm.env import ArmEnv, ArmState
 from lazyq_jax.tasks.arm.episodes import scripted_arm_policy
 from lazyq_jax.tasks.base import CORRECT
@@ -108,18 +108,11 @@ def evaluate(task, config, act, seeds) -> dict:
 def report(table: dict) -> None:
     """The rates of every policy (mean [95 % CI] over seeds), the rollout's paired gain over the
     scripted controller, the outcomes per goal."""
-    first = next(iter(table.values()))["rows"]
-    keys = [k for k in first[0] if k.endswith("_rate") and "per_direction" not in k
-            and all(r[k] is not None and math.isfinite(r[k]) for r in first)]  # no diagonal goals with 4 directions
+    rows = {name: t["rows"] for name, t in table.items()}
+    first = next(iter(rows.values()))
+    keys = [k for k in rate_keys(first[0]) if all(k in rate_keys(r) for r in first)]  # no diagonals with 4 goals
     print(f"\n{len(first)} seeds (protocol A of arm, the runs' episodes); mean [95 % CI]")
-    print("| policy | " + " | ".join(keys) + " |\n|---|" + "---|" * len(keys))
-    for name, t in table.items():
-        cells = [format_ci(t_interval([r[k] for r in t["rows"]])) for k in keys]
-        print(f"| {name} | " + " | ".join(cells) + " |")
-    names = list(table)
-    for k in keys:
-        diff = [b[k] - a[k] for a, b in zip(table[names[0]]["rows"], table[names[1]]["rows"])]
-        print(f"{k}: {names[1]} - {names[0]}, paired: {format_ci(t_interval(diff, bounds=None))}")
+    rates_table(rows, keys, head="policy")
     print("\nper goal in degrees: (correct, wrong, not pushed), all seeds")
     for name, t in table.items():
         print(name, {g: tuple(c) for g, c in sorted(t["per_goal"].items(), key=lambda x: float(x[0]))})

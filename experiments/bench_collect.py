@@ -22,16 +22,16 @@ from __future__ import annotations
 
 import argparse
 import math
-import statistics
 import time
 
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from _common import timed  # the script's own folder is on sys.path
 
-from lazyq_jax.tasks.push import FORGIVING_PUSH, CollectConfig, PushConfig, PushEnv
 from lazyq_jax.data import _episode_keys
+from lazyq_jax.tasks.push import FORGIVING_PUSH, CollectConfig, PushConfig, PushEnv
 from lazyq_jax.tasks.push.collect import collect, make_episode_fn
 from lazyq_jax.tasks.push.native import native_push
 
@@ -47,15 +47,6 @@ def pushes(rng, batch, contact):
         start = start[np.linalg.norm(start, axis=1) > 0.31][:batch]
         turn = rng.uniform(-np.pi, np.pi, batch)
     return start.astype(np.float32), np.stack([np.cos(turn), np.sin(turn)], 1).astype(np.float32)
-
-
-def timed(fn, repeats):
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times), out
 
 
 def main():
@@ -89,18 +80,16 @@ def main():
             n_native = batch if world.friction == "fluid" else min(batch, args.native_max)
             for nthread in (1, 2):
                 datas = [mujoco.MjData(env.mj_model) for _ in range(nthread)]
-                t_nat, final = timed(lambda: native_push(env, start[:n_native], zeros[:n_native],
-                                                         action[:n_native], nthread, datas),
-                                     args.repeats if n_native == batch else 1)
+                final, _, t_nat = timed(native_push, env, start[:n_native], zeros[:n_native],
+                                        action[:n_native], nthread, datas,
+                                        repeats=args.repeats if n_native == batch else 1)
                 rates[nthread] = n_native * steps / t_nat
             for x64 in (True, False):
                 with jax.enable_x64(x64):
                     env = make_env()
                     step = jax.jit(jax.vmap(env.step))
                     state, act = env.reset(jnp.asarray(start)), jnp.asarray(action)
-                    jax.block_until_ready(step(state, act))  # compile outside the timing
-                    t_mjx, (_, delta) = timed(lambda: jax.block_until_ready(step(state, act)),
-                                              args.repeats)
+                    (_, delta), _, t_mjx = timed(step, state, act, repeats=args.repeats)  # compile first
                 mjx_rate = batch * steps / t_mjx
                 diff = np.linalg.norm(np.asarray(delta, np.float64)[:n_native] - final, axis=1)
                 moved = np.mean(np.linalg.norm(final, axis=1) >= 0.01)

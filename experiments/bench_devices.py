@@ -29,7 +29,6 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import time
 
 
 def worker(n_dev: int, preset: str, cycles: int, out: str) -> None:
@@ -38,6 +37,7 @@ def worker(n_dev: int, preset: str, cycles: int, out: str) -> None:
 
     import jax
     import numpy as np
+    from _common import timed as timed_call  # the script's own folder is on sys.path
 
     from lazyq_jax import agents, tasks
     from lazyq_jax.config import ParallelConfig
@@ -52,15 +52,7 @@ def worker(n_dev: int, preset: str, cycles: int, out: str) -> None:
     times = {}
 
     def timed(name, fn, repeats=1):
-        t = time.perf_counter()
-        result = jax.block_until_ready(fn())
-        times[f"{name}_first"] = time.perf_counter() - t
-        steady = []
-        for _ in range(repeats):
-            t = time.perf_counter()
-            result = jax.block_until_ready(fn())
-            steady.append(time.perf_counter() - t)
-        times[f"{name}_steady"] = statistics.median(steady)
+        result, times[f"{name}_first"], times[f"{name}_steady"] = timed_call(fn, repeats=repeats)
         return result
 
     data = timed("collect", lambda: task.collect(purpose_key(0, "collect"), config, mesh=mesh,

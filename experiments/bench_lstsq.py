@@ -19,20 +19,9 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _common import timed  # the script's own folder is on sys.path
 
 from lazyq_jax.local_model import apply_projection, fit_local_linear, precompute_projection
-
-
-def timed(f, *args, repeats=5):
-    t0 = time.perf_counter()
-    out = jax.block_until_ready(f(*args))
-    first = time.perf_counter() - t0
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(f(*args))
-        ts.append(time.perf_counter() - t0)
-    return out, first, float(np.median(ts))
 
 
 def numpy_normal_equations(a, v):
@@ -58,19 +47,19 @@ def main():
     print(f"{n:,} neighbourhoods x k={k} x n_a=2, devices={jax.devices()}")
 
     fit = jax.jit(fit_local_linear)
-    (alpha, beta), first, steady = timed(fit, aj, vj)
+    (alpha, beta), first, steady = timed(fit, aj, vj, repeats=5)
     print(f"jax fit_local_linear: steady {steady:.3f} s (compile+first {first:.2f} s)")
-    proj, first_p, steady_p = timed(jax.jit(precompute_projection), aj)
+    proj, first_p, steady_p = timed(jax.jit(precompute_projection), aj, repeats=5)
     print(f"jax precompute_projection (once per dataset): {steady_p:.3f} s (compile+first {first_p:.2f} s)")
-    _, _, steady_apply = timed(jax.jit(apply_projection), proj, vj)
+    _, _, steady_apply = timed(jax.jit(apply_projection), proj, vj, repeats=5)
     print(f"jax apply_projection (per cycle): {steady_apply:.3f} s")
 
     # Refit vs projection where it is used: per cycle only y changes; gather y[idx] then fit.
     idx = jnp.asarray(rng.integers(0, n, (n, k)).astype(np.int32))
     y = jnp.asarray(rng.normal(size=n).astype(np.float32))
     a_nb = aj  # the neighbours' actions are fixed per dataset
-    _, _, t_refit = timed(jax.jit(lambda y: fit_local_linear(a_nb, y[idx])), y)
-    _, _, t_proj = timed(jax.jit(lambda y: apply_projection(proj, y[idx])), y)
+    _, _, t_refit = timed(jax.jit(lambda y: fit_local_linear(a_nb, y[idx])), y, repeats=5)
+    _, _, t_proj = timed(jax.jit(lambda y: apply_projection(proj, y[idx])), y, repeats=5)
     print(f"per-cycle gather y[idx] + refit {t_refit:.3f} s  vs  gather + projection {t_proj:.3f} s")
 
     m = min(args.loop, n)

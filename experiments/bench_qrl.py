@@ -18,11 +18,11 @@ function (tests/test_qrl.py checks values and gradients against each other).
 from __future__ import annotations
 
 import argparse
-import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _common import alternating  # the script's own folder is on sys.path
 
 from lazyq_jax.agents import qrl
 from lazyq_jax.agents.base import Problem
@@ -62,12 +62,7 @@ def main() -> None:
         jax.block_until_ready(block(state))
         blocks[name] = (block, state)
     qrl.iqe_components = PACKAGE
-    times = {name: [] for name in blocks}
-    for _ in range(args.repeats):
-        for name, (block, state) in blocks.items():
-            t = time.perf_counter()
-            jax.block_until_ready(block(state))
-            times[name].append(time.perf_counter() - t)
+    times = alternating({name: (lambda b=b, s=s: b(s)) for name, (b, s) in blocks.items()}, args.repeats)
     print(f"QRL, batch 1024, width {args.width}, latent 512, {args.steps} steps a block, "
           f"median of {args.repeats} (alternating)")
     print("| IQE | steps/s | ms a step |")

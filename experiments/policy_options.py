@@ -6,7 +6,7 @@ run).  Trains nothing.
 For each value of ``--option`` every run directory's lazy Q is evaluated again by its task
 (the run's own evaluation keys); the table gives the mean [95 % CI] over all seeds of all
 directories, the run's stored ``eval.json`` beside them (the code it was evaluated with), and
-each value's paired difference to the first value.  The idle steps (zero actions: where the
+each row's paired difference to the first value.  The idle steps (zero actions: where the
 policy has no model that prefers an action and acts with the zero action) are counted too.
 
     .venv/bin/python experiments/policy_options.py \\
@@ -22,12 +22,12 @@ import json
 import time
 from pathlib import Path
 
+from _common import rate_keys, rates_table  # the script's own folder is on sys.path
+
 from lazyq_jax import tasks
 from lazyq_jax.config import POLICY_FIELDS
 from lazyq_jax.run import load_run
 from lazyq_jax.run.runner import open_existing
-from lazyq_jax.stats import format_ci, t_interval
-
 
 
 def idle_steps(result: dict) -> int:
@@ -64,28 +64,18 @@ def main():
     ap.add_argument("--values", nargs="+", default=["zero", "random"])
     ap.add_argument("--out", type=Path, help="JSON file (default: FIRST_RUN_DIR/policy_options.json)")
     args = ap.parse_args()
-    table = {"stored eval.json": [row for d in args.run_dirs for row in stored_rows(d)]}
+    table = {}
     for value in args.values:
         t = time.perf_counter()
         table[f"{args.option}={value}"] = [row for d in args.run_dirs for row in evaluate_with(d, args.option, value)]
         print(f"{args.option}={value}: evaluated in {time.perf_counter() - t:.0f} s", flush=True)
+    table["stored eval.json"] = [row for d in args.run_dirs for row in stored_rows(d)]
     out = args.out or args.run_dirs[0] / "policy_options.json"
     out.write_text(json.dumps(table, indent=1))
-    keys = [k for k in table[next(iter(table))][0] if k.endswith("_rate") and "per_direction" not in k]
-    first = f"{args.option}={args.values[0]}"
-    n = len(table[first])
-    print(f"\n{n} seeds ({', '.join(str(d) for d in args.run_dirs)}); mean [95 % CI]; idle steps summed")
-    print("| acting | " + " | ".join(keys) + " | idle steps |")
-    print("|---|" + "---|" * (len(keys) + 1))
-    for name, rows in table.items():
-        cells = [format_ci(t_interval([r[k] for r in rows])) for k in keys]
-        print(f"| {name} | " + " | ".join(cells) + f" | {sum(r['idle_steps'] for r in rows)} |")
-    for name, rows in table.items():
-        if name in (first, "stored eval.json"):
-            continue
-        diffs = [format_ci(t_interval([r[k] - b[k] for r, b in zip(rows, table[first])], bounds=None))
-                 for k in keys]
-        print(f"| {name} - {first} (paired) | " + " | ".join(diffs) + " | |")
+    keys = rate_keys(table[next(iter(table))][0])
+    print(f"\n{len(table['stored eval.json'])} seeds ({', '.join(str(d) for d in args.run_dirs)}); "
+          "mean [95 % CI]; last column: idle steps summed")
+    rates_table(table, keys, extra=lambda rows: str(sum(r["idle_steps"] for r in rows)), head="acting")
     for name, rows in table.items():
         print(f"{name}: per seed " + "; ".join(
             f"{r['seed']}: " + " / ".join(f"{100 * r[k]:.1f}" for k in keys) for r in rows))
