@@ -41,44 +41,22 @@ VARIANTS = {
     "state": STATE,  # the paper's: neighbourhoods in joint space
     "state_offsets": IN_Q + OFFSETS,
     "fingertip": FINGERTIP,
-    "fingertip_w0": AT_TIP[:2] + ["neighbours.feature_weight=0"] + LINEAR,
-    "fingertip_w0.5": AT_TIP[:2] + ["neighbours.feature_weight=0.5"] + LINEAR,
     "fingertip_offsets": FINGERTIP_OFFSETS,  # the default of arm and arm-long
-    "state_x2": STATE + ["collect.n_starts=10000"],
-    "state_x4": STATE + ["collect.n_starts=20000"],
-    "fingertip_x2": FINGERTIP + ["collect.n_starts=10000"],
-    "fingertip_x4": FINGERTIP + ["collect.n_starts=20000"],
     "fingertip_offsets_x2": FINGERTIP_OFFSETS + ["collect.n_starts=10000"],
     "fingertip_offsets_x4": FINGERTIP_OFFSETS + ["collect.n_starts=20000"],
-    "state_k40": STATE + ["neighbours.k=40"],
-    "state_offsets_k40": IN_Q + OFFSETS + ["neighbours.k=40"],
     "fingertip_offsets_k40": FINGERTIP_OFFSETS + ["neighbours.k=40"],
     # distance-weighted local fits (Epanechnikov weights at each neighbourhood's radii)
     "fingertip_offsets_epan": FINGERTIP_OFFSETS + ["neighbours.fit_weights=epanechnikov"],
-    "fingertip_offsets_epan_k40": FINGERTIP_OFFSETS + ["neighbours.fit_weights=epanechnikov", "neighbours.k=40"],
     # the fingertip relative to the disk alone (no joint angles in the search space)
     "fingertip_offsets_w0": AT_TIP[:2] + ["neighbours.feature_weight=0"] + OFFSETS,
-    "fingertip_move0.06": FINGERTIP + ["collect.arm.action_length=0.06"],
-    # where the data starts: the fingertip within 0.6 of the disk (the long-horizon task's
-    # start box, Fig. 5's 1.2 x 1.2) instead of 1.0; protocol A keeps its own 1.0 box
-    "fingertip_offsets_box0.6": FINGERTIP_OFFSETS + ["collect.arm.start_range=0.6"],
-    "fingertip_offsets_box0.6_x4": FINGERTIP_OFFSETS + ["collect.arm.start_range=0.6",
-                                                        "collect.n_starts=20000"],
-    # arm-long only: the data's disk within the long-horizon task's 0.3 (eval.long_range)
+    # arm-long only: where the data starts: the fingertip within 0.6 of the disk (the
+    # long-horizon task's start box, Fig. 5's 1.2 x 1.2) instead of 1.0 (protocol A keeps its
+    # own 1.0 box), the disk within the long-horizon task's 0.3 (eval.long_range)
     "fingertip_offsets_box0.6_disk0.3": FINGERTIP_OFFSETS + ["collect.arm.start_range=0.6",
                                                              "collect.disk_range=0.3"],
     "fingertip_offsets_box0.6_disk0.3_x4": FINGERTIP_OFFSETS + ["collect.arm.start_range=0.6",
                                                                 "collect.disk_range=0.3",
                                                                 "collect.n_starts=20000"],
-    # where the local model prefers no action, a random joint move (arm-long's default since
-    # the policy option neighbours.no_model_action) instead of none
-    "fingertip_offsets_random": FINGERTIP_OFFSETS + RANDOM,
-    "fingertip_offsets_box0.6_disk0.3_random": FINGERTIP_OFFSETS + RANDOM + [
-        "collect.arm.start_range=0.6", "collect.disk_range=0.3"],
-    "fingertip_offsets_box0.6_disk0.3_x4_random": FINGERTIP_OFFSETS + RANDOM + [
-        "collect.arm.start_range=0.6", "collect.disk_range=0.3", "collect.n_starts=20000"],
-    "fingertip_offsets_box0.6_disk0.3_k40_random": FINGERTIP_OFFSETS + RANDOM + [
-        "collect.arm.start_range=0.6", "collect.disk_range=0.3", "neighbours.k=40"],
     # 4x the moves, a quarter of the goals per move (25, not §V-A-3's 100): the rows (and the
     # training's cost) of 1x, but a neighbourhood of k rows holds more distinct moves
     "fingertip_offsets_x4_g25": FINGERTIP_OFFSETS + ["collect.n_starts=20000", "collect.n_goals=25"],
@@ -93,7 +71,6 @@ VARIANTS = {
     # 4x the paper's moves: the paper's 5000 random starts, then 5 rounds of the agent's pushes
     "online_fingertip_offsets_x4": FINGERTIP_OFFSETS + ["collect.n_starts=5000", "online.episodes=1200",
                                                         "online.max_moves=40000"],
-    "online_state": STATE,
 }
 # k, the radius and the joint move norm, one at a time (the issue's remaining levers; later
 # overrides win, so each variant is the default with one setting changed)
