@@ -123,7 +123,10 @@ def cmd_report(args) -> int:
         print(f"{len(copies)} files of {args.run_dirs[0]} -> {args.archive}")
         return 0
     text = report.render(args, fmt=args.format)
-    args.out.write_text(text) if args.out else sys.stdout.write(text)
+    if args.out:
+        args.out.write_text(text)
+    else:
+        sys.stdout.write(text)
     return 0
 
 
