@@ -63,7 +63,7 @@ def policy_index(data_s, data_g, *, k: int, radius_s: float, radius_g: float, gr
     bounded per-step query of :func:`lazyq_jax.neighbours.query.build_policy_index`, in every
     space (the paper's 2-D states with angle goals included: there it is 3.8x faster than
     the grid's ``query_neighbours``, whose static window is ``max_level``'s stencil for every
-    query; ``experiments/bench_policy_2d.py``)."""
+    query; docs/performance.md)."""
     return build_policy_index(data_s, data_g, k=k, radius_s=radius_s, radius_g=radius_g,
                               growth=growth, max_level=max_level, n_valid=n_valid)
 
