@@ -1,5 +1,7 @@
 """Neighbour search against a brute-force NumPy reference (same float32 formula)."""
 
+import contextlib
+
 import chex
 import jax
 import jax.numpy as jnp
@@ -10,12 +12,16 @@ from lazyq_jax.neighbours.common import TWO_PI
 from lazyq_jax.neighbours import (
     Neighbours,
     build_index,
+    build_scan_index,
     check_found,
     find_neighbours,
     query_neighbours,
+    query_neighbours_scan,
     radius_tables,
+    search_all,
     wrap_angle,
 )
+from lazyq_jax.neighbours.query import build_policy_index, query_policy
 
 RS, RG, G = 0.06, 0.1, 2 ** (1 / 3)
 
@@ -284,3 +290,47 @@ def test_host_build_leaves_numpys_hugepage_advice_as_it_found_it(monkeypatch):
     finally:
         common._set_madvise_hugepage(original)
     assert seen == [False, False, False]
+
+
+@contextlib.contextmanager
+def _lowerings():
+    """The XLA programs lowered (to be compiled or read from a cache) inside the block."""
+    seen = []
+
+    def listen(event, duration_secs, **kwargs):
+        if event == "/jax/core/compile/jaxpr_to_mlir_module_duration":
+            seen.append(event)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        yield seen
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+
+
+def test_bad_inputs_raise_before_anything_compiles():
+    """Every shape and kind check of the public functions runs at the boundary: a bad input
+    raises its error before any program is lowered (shapes unique to this test, so that a
+    late check would have to compile)."""
+    rng = np.random.default_rng(5)
+    key = jax.random.key(0)
+    s2, a, s3 = rng.uniform(-1, 1, (37, 2)), rng.uniform(-3, 3, 37), rng.uniform(-1, 1, (37, 3))
+    grid = build_index(s2, a, k=3, max_level=2)
+    policy = build_policy_index(s3, a, k=3, radius_s=0.3, radius_g=0.5, growth=1.5, max_level=3)
+    scan = build_scan_index(s3, None, k=3)
+    cases = [
+        # the data of find_neighbours' cases: 29 points (not the indices' 37, which compiled)
+        (lambda: find_neighbours(key, s2[:29], a[:29], s2[:7], rng.normal(size=(7, 3)), k=3), "query goals"),
+        (lambda: find_neighbours(key, s2[:29], a[:29], np.full((7, 2), np.nan), a[:7], k=3), "NaN"),
+        (lambda: find_neighbours(key, s3[:29], None, s2[:7], None, k=3), "d_s=2"),
+        (lambda: find_neighbours(key, s2[:29], a[:29], s2[:7], a[:7], k=30), "at least k=30"),
+        (lambda: search_all(grid, key, s3[:7], a[:7]), r"\[n, 2\]"),
+        (lambda: query_neighbours(grid, key, s2[:7], None), r"query_g \[Q\]"),
+        (lambda: query_policy(policy, key, s2[:7], a[:7]), r"\[Q, 3\]"),
+        (lambda: query_policy(policy, key, s3[:7], None), "angles"),
+        (lambda: query_neighbours_scan(scan, key, s3[:7], a[:7]), "no goals"),
+    ]
+    for call, message in cases:
+        with _lowerings() as lowered, pytest.raises(ValueError, match=message):
+            call()
+        assert not lowered, f"{message}: {len(lowered)} programs lowered before the error"

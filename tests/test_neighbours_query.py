@@ -13,8 +13,9 @@ import pytest
 import lazyq_jax as lq
 from lazyq_jax.neighbours.common import wrap_angle
 from lazyq_jax.neighbours.nd import find_neighbours_nd, membership_level_reference
-from lazyq_jax.neighbours.query import (_scan_query, _wrap_jit, build_policy_index, build_scan_index,
+from lazyq_jax.neighbours.query import (_scan_query, build_policy_index, build_scan_index,
                                         query_neighbours_scan, query_policy, stack_policy_indices)
+from lazyq_jax.neighbours.scan import _wrap_jit
 
 RS, RG, GROWTH, MAX_LEVEL = 0.1, 0.4, 2 ** (1 / 3), 8
 

@@ -1,21 +1,41 @@
 """The core every neighbour search shares (:mod:`~lazyq_jax.neighbours.grid`,
-:mod:`~lazyq_jax.neighbours.nd`, :mod:`~lazyq_jax.neighbours.query`): the result type, the
-float32 membership thresholds (radius tables, the wrapped angle) and, once a layout has
-cut each query's candidate ranges into items of ``W`` entries, everything after it:
+:mod:`~lazyq_jax.neighbours.nd`, :mod:`~lazyq_jax.neighbours.query`): the semantics, the
+result type, the float32 membership thresholds and, once a layout has cut each query's
+candidate ranges into items of ``W`` entries, everything after it.
 
-* :func:`_items`: ranges ``[Q, R]`` -> items (query, first entry, valid lanes);
-* :func:`_member_words`: one float32 membership test per entry and level, a 32-bit
-  word per item and level (the formula of :mod:`lazyq_jax.neighbours.nd`, any space);
-* :func:`_pick_level`: each query's level (popcount sums);
-* :func:`_sample_members`: ``k`` distinct ranks by Floyd's algorithm from a per-query
-  hash, each mapped to its entry through the prefix of popcounts and a select-in-word.
+Semantics (the reference the tests check against)
+-------------------------------------------------
+With ``R2S[L] = float32((radius_s * growth**L)**2)``, ``RG[L] = float32(radius_g * growth**L)``
+and ``RG2[L] = float32((radius_g * growth**L)**2)`` (each rounded once from float64:
+:func:`radius_tables`), a data point ``(s, g)`` belongs to ``B_L(s0, g0)`` iff, computed in
+float32 exactly as written (every product and every sum rounded to float32, sums left to
+right)::
 
-A layout (which axes are gridded, how the angle is replicated, how ranges are
-planned) is all that differs between the engines."""
+    ds2 = ((s[0]-s0[0])**2 + (s[1]-s0[1])**2) + ... + (s[d_s-1]-s0[d_s-1])**2
+    ds2 < R2S[L]  and  goal_ok
+
+    angle:  d = |wrap(g) - wrap(g0)|;  min(d, TWO_PI - d) < RG[L]
+    vector: dg2 = (g[0]-g0[0])**2 + ... + (g[d_g-1]-g0[d_g-1])**2;  dg2 < RG2[L]
+    none:   goal_ok = True
+
+``wrap`` is :func:`wrap_angle` (float32 ``PI``/``TWO_PI``): the paper's ``cos(g - g0) >
+cos(0.1)`` as a wrapped distance, so ``-pi`` and ``pi`` are neighbours.  ``level`` is the
+smallest ``L >= 0`` with ``|B_L| >= k``; ``idx`` holds ``k`` distinct indices drawn
+uniformly without replacement from ``B_level``; ``count = |B_level|``.  A float64
+evaluation can disagree on pairs within an ulp of a boundary; the float32 formula is the
+definition.  XLA on CPU contracts ``a*b + c`` into a fused multiply-add (about a quarter of
+random ``x*x + y*y`` differ in the last bit), so every square is ``max(d*d, 0)`` (:func:`_sq`):
+the jitted test is bitwise the formula.
+
+After the layout: :func:`_items` (ranges ``[Q, R]`` -> items), :func:`_member_words` (a
+32-bit membership word per item and level), :func:`_pick_level` (popcount sums) and
+:func:`_sample_members` (``k`` distinct ranks by Floyd's algorithm from a per-query hash,
+each mapped to its entry through the prefix of popcounts and a select-in-word)."""
 
 from __future__ import annotations
 
 import contextlib
+import math
 
 import jax
 import jax.numpy as jnp
@@ -101,6 +121,34 @@ def radius_tables(radius_s, radius_g, growth, levels):
     r2s = ((radius_s * growth**lv) ** 2).astype(np.float32)
     rg = (radius_g * growth**lv).astype(np.float32)
     return r2s, rg
+
+
+def _level_tables(radius_s, radius_g, growth, levels):
+    """float32 ``(R2S, RG, RG2)`` of ``levels``: the state, angle and goal-vector thresholds
+    (radii beyond float32 are inf, a fine threshold)."""
+    with np.errstate(over="ignore"):
+        r2s, rg = radius_tables(radius_s, radius_g, growth, levels)
+        rg2, _ = radius_tables(radius_g, radius_g, growth, levels)
+    return r2s, rg, rg2
+
+
+def _pow2(n: int) -> int:
+    return 1 << max(int(n) - 1, 0).bit_length()
+
+
+def _bucket(n: int, coarse: bool = False) -> int:
+    """Round ``n`` up to 16 significant levels per power of two (bounds recompiles, <7% waste),
+    or to a power of two if ``coarse`` (small later passes: more sharing, more waste)."""
+    n = max(int(n), 1)
+    unit = 1 << max(n.bit_length() - (1 if coarse else 4), 0)
+    return -(-n // unit) * unit
+
+
+def _levels_to_cover(diags, radii, growth) -> int:
+    """A level whose radii cover every (data, query) pair, so ``|B| = N >= k`` there:
+    ``diags`` the extents of the blocks (state, goal), ``radii`` their base radii."""
+    lg = math.log(growth)
+    return 1 + max([0] + [math.ceil(math.log(d / r) / lg) for d, r in zip(diags, radii) if d > 0])
 
 
 
@@ -216,7 +264,7 @@ def _steps(max_items: int) -> int:
 
 def _sq(v):
     """``v*v`` rounded to float32 before any add: the ``max`` keeps XLA from contracting it
-    with a later add into a fused multiply-add (see :mod:`lazyq_jax.neighbours.nd`)."""
+    with a later add into a fused multiply-add (module docstring)."""
     return jnp.maximum(v * v, jnp.float32(0))
 
 
@@ -226,11 +274,10 @@ def _member_words(index, qcols, item_q, item_start, item_valid, lo: int, hi: int
     ``index``: any engine's index with ``cols`` (float32 ``[n_cols, E + W]``: the state
     dimensions, then the wrapped angle or the goal's; ``W`` padding entries at the end),
     ``d_s``, ``goal``, ``d_g``, ``radius_s``, ``radius_g``, ``growth``; ``qcols`` the queries'
-    columns ``[n_cols, Q]``.  The test is the float32 formula of :mod:`lazyq_jax.neighbours.nd`.
+    columns ``[n_cols, Q]``.  The test is the float32 formula of the module docstring.
     """
     levels = np.arange(lo, hi + 1)
-    r2s, rg = radius_tables(index.radius_s, index.radius_g, index.growth, levels)
-    rg2, _ = radius_tables(index.radius_g, index.radius_g, index.growth, levels)
+    r2s, rg, rg2 = _level_tables(index.radius_s, index.radius_g, index.growth, levels)
     lane = jnp.arange(W, dtype=jnp.int32)
     n_cols = index.cols.shape[0]
     # One contiguous [n_cols, W] slice per item (cols carry W padding entries at the end):

@@ -1,23 +1,8 @@
 """The grid of the paper's case (2-D states, an angle goal): neighbourhoods ``B(s0, g0)``
 of paper §V-A-2 on a grid hash, under ``jit``.
 
-Semantics (the reference the tests check against)
--------------------------------------------------
-A data point ``(s, g)`` belongs to ``B_L(s0, g0)`` (``L`` growths) iff, computed
-in float32 exactly as written::
-
-    dx = s[0] - s0[0];  dy = s[1] - s0[1]
-    dx*dx + dy*dy < R2S[L]                 # R2S[L] = float32((radius_s * growth**L)**2)
-    d = |wrap(g) - wrap(g0)|;  min(d, TWO_PI - d) < RG[L]   # RG[L] = float32(radius_g * growth**L)
-
-with ``wrap(a) = a - TWO_PI * floor((a + PI) / TWO_PI)`` (float32, ``PI`` and
-``TWO_PI`` the float32 constants). This is the paper's ``cos(g - g0) > cos(0.1)``
-written as a wrapped distance, so ``-pi`` and ``pi`` are neighbours. The radius
-tables are rounded from float64 once; a float64 evaluation can disagree on
-pairs within an ulp of a boundary, the float32 formula above is the definition.
-``level`` is the smallest ``L >= 0`` with ``|B_L| >= k``; ``idx`` holds ``k``
-distinct indices drawn uniformly without replacement from ``B_level`` (the query
-point itself belongs to ``B`` when it is a data point).
+The semantics are :mod:`lazyq_jax.neighbours.common`'s float32 membership test, here with
+``ds2 = dx*dx + dy*dy`` and the angle goal.
 
 Data structure
 --------------
@@ -61,9 +46,10 @@ import numpy as np
 from flax import struct
 from jax.sharding import Mesh, PartitionSpec as P
 
-from lazyq_jax.neighbours.common import (PI, W, Neighbours, _check_params, _draw_ranks, _items, _member_words,
-                                         _pick_level, _sample_members, _select_members, _steps,
-                                         _without_hugepage_advice, stable_order, wrap_angle)
+from lazyq_jax.neighbours.common import (PI, W, Neighbours, _bucket, _check_params, _draw_ranks, _items,
+                                         _levels_to_cover, _member_words, _pick_level, _sample_members,
+                                         _select_members, _steps, _without_hugepage_advice, stable_order, wrap_angle)
+from lazyq_jax.neighbours.layout import _space
 from lazyq_jax.parallel import AXIS, to_host
 
 D = 5  # g-cells per g-block (each point is stored D times)
@@ -105,14 +91,11 @@ class GridIndex:
 
 
 def _check_points(s, g, what):
-    s = np.asarray(s)
-    g = np.asarray(g)
-    if s.ndim != 2 or s.shape[1] != 2:
-        raise ValueError(f"{what}_s must have shape [n, 2], got {s.shape}")
-    if g.shape != (s.shape[0],):
-        raise ValueError(f"{what}_g must have shape [{s.shape[0]}] to match {what}_s, got {g.shape}")
-    s = s.astype(np.float32)
-    g = g.astype(np.float32)
+    _, d_s, kind, _ = _space(s, g, what)
+    if (d_s, kind) != (2, "angle"):
+        raise ValueError(f"{what}_s must have shape [n, 2] and {what}_g [n] (an angle), got {np.shape(s)} and "
+                         f"{None if g is None else np.shape(g)}")
+    s, g = np.asarray(s).astype(np.float32), np.asarray(g).astype(np.float32)
     if not (np.isfinite(s).all() and np.isfinite(g).all()):
         raise ValueError(f"{what}_s / {what}_g contain NaN or inf; remove or fix those points")
     return s, g
@@ -443,14 +426,6 @@ def _write(out, sub, results):
     return tuple(o.at[sub].set(r, mode="drop") for o, r in zip(out, results))
 
 
-def _bucket(n: int, coarse: bool = False) -> int:
-    """Round ``n`` up to 16 significant levels per power of two (bounds recompiles, <7% waste),
-    or to a power of two if ``coarse`` (the small later passes: more sharing, more waste)."""
-    n = max(int(n), 1)
-    unit = 1 << max(n.bit_length() - (1 if coarse else 4), 0)
-    return -(-n // unit) * unit
-
-
 def query_neighbours(index: GridIndex, key, query_s, query_g) -> Neighbours:
     """Neighbours of a batch of queries from a prebuilt index: pure and jittable.
 
@@ -464,9 +439,10 @@ def query_neighbours(index: GridIndex, key, query_s, query_g) -> Neighbours:
     most queries need few growths). Batch the queries rather than ``vmap`` over this
     function.
     """
-    if query_s.ndim != 2 or query_s.shape[1] != 2 or query_g.shape != query_s.shape[:1]:
-        raise ValueError(f"query_s must be [Q, 2] and query_g [Q]; got {query_s.shape} and {query_g.shape}")
-    q = query_s.shape[0]
+    shape_g = None if query_g is None else np.shape(query_g)
+    if np.ndim(query_s) != 2 or np.shape(query_s)[1] != 2 or shape_g != np.shape(query_s)[:1]:
+        raise ValueError(f"query_s must be [Q, 2] and query_g [Q]; got {np.shape(query_s)} and {shape_g}")
+    q = np.shape(query_s)[0]
     qs = jnp.asarray(query_s, jnp.float32)
     _, _, n_rows, n_blocks, _ = _stencil(index, index.max_level)
     per_query = n_rows * n_blocks * (-(-index.max_window // W))
@@ -531,10 +507,8 @@ def search_all(index: GridIndex, key, query_s, query_g, *, mesh: Mesh | None = N
     # the entries (two reductions over the D N entries)
     hi_x = max(real[:, 0].max(), index.x0 + index.n_x * index.h_x)
     hi_y = max(real[:, 1].max(), index.y0 + index.n_y * index.h_y)
-    diag = math.hypot(hi_x - lo_x, hi_y - lo_y)
-    g = index.growth
-    level_all = 1 + max(0, math.ceil(math.log(max(diag, 1e-30) / index.radius_s) / math.log(g)),
-                        math.ceil(math.log(np.pi / index.radius_g) / math.log(g)))
+    level_all = _levels_to_cover((math.hypot(hi_x - lo_x, hi_y - lo_y), math.pi), (index.radius_s, index.radius_g),
+                                 index.growth)
     # The passes do not read max_level/max_window (query_neighbours' capacities): indices that
     # differ only there share compiled passes.
     index = index.replace(max_level=0, max_window=1)

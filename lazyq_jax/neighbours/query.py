@@ -3,65 +3,43 @@
 :func:`lazyq_jax.neighbours.nd.find_neighbours_nd` answers all of a dataset's queries
 at once (host-driven passes, growth without limit).  A policy acting in a ``lax.scan``
 rollout needs the same neighbourhoods ``B(s0, g0)`` (§V-A-2, semantics of
-:mod:`lazyq_jax.neighbours.nd`: the float32 membership formula, the smallest level
+:mod:`lazyq_jax.neighbours.common`: the float32 membership formula, the smallest level
 ``L <= max_level`` with ``|B_L| >= k``, ``k`` distinct members drawn uniformly) for a
-batch of queries at a time, inside ``jit``.  Two engines:
+batch of queries at a time, inside ``jit``: :func:`build_policy_index` once per dataset,
+then :func:`query_policy` at every step (pure, jittable, vmappable over stacked seeds): a
+grid over a few selective axes whose per-query work is a stencil of cells with static
+capacities.  (:mod:`lazyq_jax.neighbours.scan` scans all ``N`` points a query: the
+reference, and the policy index's fallback.)
 
-* :func:`build_policy_index` once per dataset, then :func:`query_policy` at every step
-  (pure, jittable, vmappable over stacked seeds): a grid over a few selective axes
-  whose per-query work is a stencil of cells with static capacities.
-* :func:`build_scan_index` / :func:`query_neighbours_scan`: every query scans all
-  ``N`` points (``O(N (d_s + d_g))`` a query, no layout; the reference, and the
-  policy index's fallback).
+*Layout* (host, :func:`build_policy_index`): :mod:`lazyq_jax.neighbours.layout`'s, the data
+sorted by the cells of ``m <= 4`` grid axes, chosen by :mod:`lazyq_jax.neighbours.cost` for
+the stencils of the levels a policy query evaluates.  The cells of a non-periodic axis are a
+power of two wide and start at a multiple of their width, so a query's cell and fraction are
+exact in float32 under ``jit`` (:func:`_cells`, as the host's float64 cells of the data); the
+angle's cells tile the circle.  Membership is always the exact float32 test.
 
-The policy index
-----------------
-*Layout* (host, :func:`build_policy_index`).  The data are sorted by the cell key of
-``m <= 4`` grid axes (chosen by a cost model, as :mod:`lazyq_jax.neighbours.nd`, but for
-the stencils of the levels a policy query evaluates, not level 0), with a dense table
-of cell offsets.  The cells of a non-periodic axis are a power of two wide and start at
-a multiple of their width, so a query's cell and its fraction, ``floor(x / w)`` and
-``x / w - floor(x / w)``, are exact in float32 under ``jit`` (as the host's float64
-cells of the data); the angle's cells tile the circle and carry the angular slack of
-:mod:`lazyq_jax.neighbours.nd`.  The stencil of level ``L`` is nd's: one contiguous
-range per cell of the non-last axes, the last axis clipped to the chord of the ball;
-membership is always the exact float32 formula on all dimensions.
-
-*Phases with static capacities* (``index.phases``, chosen on the host from the data
-and ``max_level``).  Phase 0 evaluates levels ``0..h_0`` (one membership word per level
-and item) for every query of the batch; the queries with fewer than ``k`` members at
-``h_0`` go to phase 1 (levels ``h_0+1..h_1``, the stencil of ``h_1``), in rounds, and so
-on up to ``max_level``.  A later phase's round has a pool of ``S_p * cap_p`` items of
-``W = 32`` entries, ``S_p = max(8, ceil(frac_p Q))``, shared by ``min(Q, 8 S_p)`` slots
-(``_SLOT_FACTOR``), packed smallest stencil first; queries that do not fit wait for the
-next round (a ``while_loop``: one round unless the batch is unusual, e.g. far from the
-data).  The extra slots are for queries far from the data's pairs, which need high
-levels but have small stencils there: pointmaze's evaluation steps took many rounds of a
-mostly empty pool with one slot per ``cap_p`` (a trained run's evaluation 70.7 s with
-one slot per ``cap_p``, 40.4 s with 8, the same outcomes; queries near the data pay a
-little for the slots' ranges and sampling: 0.012 -> 0.015 ms a query on the push task's
-data, 0.046 -> 0.053 ms on arm-long's, ``experiments/bench_policy_2d.py``, one run
-each).  ``h_p``, ``frac_p`` and
+*Phases with static capacities* (``index.phases``).  Phase 0 evaluates levels ``0..h_0``
+(a membership word per level and item) for every query of the batch; the queries with
+fewer than ``k`` members at ``h_0`` go to phase 1 (levels ``h_0+1..h_1``, the stencil of
+``h_1``), in rounds, and so on up to ``max_level``.  A later phase's round has a pool of
+``S_p * cap_p`` items of ``W = 32`` entries, ``S_p = max(8, ceil(frac_p Q))``, shared by
+``min(Q, 8 S_p)`` slots (``_SLOT_FACTOR``: queries far from the data need high levels but
+small stencils), packed smallest stencil first; queries that do not fit wait for the next
+round (a ``while_loop``: one round unless the batch is unusual).  ``h_p``, ``frac_p`` and
 ``cap_p`` come from a sample of queries (default: data points moved by about a radius):
-the schedule and grid of least estimated work (an extra phase must save 15%: each costs
-~2-3 s of compile), ``frac_p`` 1.5x the estimated share still short of ``k`` (+3%),
-``cap_p`` 1.1x the 99th percentile of the exact items a query needs (full table).  The
-work of a round is therefore bounded by ``S_p cap_p W + 8 S_p ranges_p`` entry tests and
-range lookups plus ``8 S_p k (k + log2(S_p cap_p))`` for sampling, whatever its queries
-(the layout's cost model still counts ``S_p`` slots).  Measured before the extra slots (N = 1M,
-arm-like data, 320 queries, 2 shared cores): d_s = 3 phases 0-4 (320 x 56 items) and 5
-(16 x 88): 0.07-0.13 ms a query; d_s = 5 one phase 0-5 (320 x 90): 0.11-0.14 ms; the
-scan 11-14 ms (experiments/bench_neighbours_query.py); max_level 10 instead of 5: 0.14
-and 0.24 ms, and 0.36-0.57 ms for queries far outside the data (many rounds).
+``frac_p`` 1.5x the estimated share still short of ``k`` (+3%), ``cap_p`` 1.1x the 99th
+percentile of the exact items a query needs.  A round's work is therefore bounded by
+``S_p cap_p W + 8 S_p ranges_p`` entry tests and range lookups plus ``8 S_p k (k +
+log2(S_p cap_p))`` for sampling, whatever its queries (docs/performance.md: the measured
+costs, ``experiments/bench_neighbours.py --cases q3,q5``).
 
 *Overflow* (never silent).  A query whose stencil alone exceeds its phase's pool is
 flagged in ``PolicyNeighbours.overflow`` and answered exactly by a scan of all data (a
 ``while_loop`` over the flagged queries only: no cost when nothing overflows;
-``fallback=False`` leaves them ``level == -1``, still flagged).  With the measured
-capacities this takes a stencil ``S_p`` times the 99th percentile (never seen outside
-forced tiny capacities).  Queries beyond ``max_level`` get ``level == -1``, ``idx == -1``
-and ``count = |B_max_level|``.  Non-finite queries have no members: ``level == -1``,
-``count == 0`` (and ``ValueError`` outside ``jit``).
+``fallback=False`` leaves them ``level == -1``, still flagged).  Queries beyond
+``max_level`` get ``level == -1``, ``idx == -1`` and ``count = |B_max_level|``.
+Non-finite queries have no members: ``level == -1``, ``count == 0`` (and ``ValueError``
+outside ``jit``).
 
 *Randomness.*  Query ``q`` (its row) draws from a keyed hash of ``(key, q)`` only: its
 sample depends on the key, its row, its coordinates and the layout, not on the other
@@ -73,12 +51,10 @@ datasets stacked over seeds).  :func:`stack_policy_indices` gives several datase
 indices one layout (the union of their grids' bounds), the largest capacities and
 padded arrays, stacked on a leading axis for ``jax.vmap`` over seeds.
 
-The scan engine costs ``O(N (d_s + d_g))`` a query (11-14 ms at N = 1M on 2 cores).  The
-lazy policy uses the policy index in every space, the paper's 2-D states with angle goals
-included: there the grid's own jittable query
-(:func:`lazyq_jax.neighbours.grid.query_neighbours`, kept as a public function) evaluates
-the stencil of ``max_level`` for every query, and the policy index's phases do less
-(``experiments/bench_policy_2d.py``).
+The lazy policy uses the policy index in every space, the paper's 2-D states with angle
+goals included (the grid's own jittable query,
+:func:`lazyq_jax.neighbours.grid.query_neighbours`, evaluates the stencil of ``max_level``
+for every query).
 """
 
 from __future__ import annotations
@@ -92,11 +68,15 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from lazyq_jax.neighbours.common import (PI, TWO_PI, W, Neighbours, _check_params, _items, _key_words,
-                                         _member_words, _mix32, _pick_level, _query_seeds, _sample_members,
-                                         _sq, radius_tables, wrap_angle)
-from lazyq_jax.neighbours.nd import (MAX_GRID_AXES, GridAxis, _axes_info, _offsets, _points, _query_cells,
-                                     _ranges, _sorted_columns, _table, _table_limit, membership_level_reference)
+from lazyq_jax.neighbours.common import (PI, W, Neighbours, _check_params, _items, _key_words, _level_tables,
+                                         _member_words, _pick_level, _pow2, _query_seeds, _sample_members,
+                                         wrap_angle)
+from lazyq_jax.neighbours.cost import (_CAP_MARGIN, _CAP_QUANTILE, _MIN_SLOTS, _N_EST, _N_SAMPLE, _choose_layout,
+                                       _estimate_levels, _fractions, _grid_p2, _grid_spec, _sample_rows,
+                                       _stencil_items)
+from lazyq_jax.neighbours.layout import IndexSettings, _axes_info, _points, _ranges, _sorted_columns, _table_limit
+from lazyq_jax.neighbours.scan import (ScanIndex, _check_max_level, _entry_levels, _query_columns, _scan_sample,
+                                       build_scan_index, query_neighbours_scan)
 
 __all__ = ["Phase", "PolicyIndex", "PolicyNeighbours", "ScanIndex", "build_policy_index", "build_scan_index",
            "query_neighbours_scan", "query_policy", "stack_policy_indices"]
@@ -110,199 +90,6 @@ class PolicyNeighbours(Neighbours):
     ``fallback=False``.  ``overflow.sum()`` counts the scans a batch paid for."""
 
     overflow: jax.Array
-
-
-# ----------------------------------------------------------------------------- shared pieces
-
-
-def _level_tables(radius_s, radius_g, growth, max_level):
-    """float32 thresholds ``(R2S, RG, RG2)`` of levels ``0..max_level``."""
-    levels = np.arange(max_level + 1)
-    r2s, rg = radius_tables(radius_s, radius_g, growth, levels)
-    rg2, _ = radius_tables(radius_g, radius_g, growth, levels)
-    return r2s, rg, rg2
-
-
-_WRAP_TURNS = 256  # |g| up to this many turns: the jitted wrap is bitwise NumPy's wrap_angle
-
-
-def _wrap_tables():
-    """``(T, P)``: ``T[i]`` the smallest float32 ``a`` with ``float32(a / TWO_PI) >= n_i``
-    (``n_i = i - _WRAP_TURNS + 1``), ``P[j] = float32(TWO_PI * (j - _WRAP_TURNS))``."""
-    n = np.arange(-_WRAP_TURNS + 1, _WRAP_TURNS + 1)
-    a = (n.astype(np.float64) * np.float64(TWO_PI)).astype(np.float32)
-    for _ in range(4):  # step to the exact float32 threshold (NumPy divides correctly rounded)
-        lower = np.nextafter(a, np.float32(-np.inf))
-        a = np.where(lower / TWO_PI >= n, lower, a)
-        a = np.where(a / TWO_PI >= n, a, np.nextafter(a, np.float32(np.inf)))
-    assert ((a / TWO_PI >= n) & (np.nextafter(a, np.float32(-np.inf)) / TWO_PI < n)).all()
-    turns = np.arange(-_WRAP_TURNS, _WRAP_TURNS + 1)
-    return a.astype(np.float32), (TWO_PI * turns.astype(np.float32)).astype(np.float32)
-
-
-_WRAP_T, _WRAP_P = _wrap_tables()
-
-
-def _wrap_jit(g):
-    """:func:`~lazyq_jax.neighbours.common.wrap_angle` under ``jit``, bitwise equal to the
-    NumPy evaluation for ``|g| < 256 * 2pi`` (XLA turns ``/ TWO_PI`` into a multiply by the
-    reciprocal and may fuse ``TWO_PI * f`` into the subtraction; both change last bits at
-    the wrap boundaries): ``floor((g + PI) / TWO_PI)`` counts exact thresholds, ``TWO_PI * f``
-    is read from a table."""
-    a = g + PI
-    f = jnp.searchsorted(jnp.asarray(_WRAP_T), a, side="right", method="compare_all")
-    return g - jnp.asarray(_WRAP_P)[jnp.clip(f, 0, 2 * _WRAP_TURNS)]
-
-
-def _entries_at_or_below(table, v):
-    """``searchsorted(table, v, side="right")`` for a short sorted float32 table given on the
-    host: the number of entries ``<= v``, one fused comparison per entry.  (``searchsorted``'s
-    ``compare_all`` broadcasts the table to ``[len, E]``; inside the policy's fallback loop XLA
-    hoisted those broadcasts out of the loop, 2 x 36 MB written at every policy step at
-    N = 1M whether or not any query fell back: 44 against 15 ms a step of 250 queries.)"""
-    out = jnp.zeros(v.shape, jnp.int32)
-    for t in np.asarray(table, np.float32):
-        out = out + (v >= jnp.float32(t)).astype(jnp.int32)
-    return out
-
-
-def _entry_levels(cols, q, *, d_s, goal, tables):
-    """``[E]`` int32: each column's smallest level with the point in ``B_L(q)`` (``len(R2S)``
-    if none); ``cols [n_cols, E]``, ``q [n_cols]`` one query."""
-    r2s, rg, rg2 = tables
-    ds2 = _sq(cols[0] - q[0])
-    for i in range(1, d_s):
-        ds2 = ds2 + _sq(cols[i] - q[i])
-    lam = _entries_at_or_below(r2s, ds2)
-    if goal == "angle":
-        d = jnp.abs(cols[d_s] - q[d_s])
-        lam = jnp.maximum(lam, _entries_at_or_below(rg, jnp.minimum(d, TWO_PI - d)))
-    elif goal == "vector":
-        dg2 = _sq(cols[d_s] - q[d_s])
-        for i in range(d_s + 1, cols.shape[0]):
-            dg2 = dg2 + _sq(cols[i] - q[i])
-        lam = jnp.maximum(lam, _entries_at_or_below(rg2, dg2))
-    return lam
-
-
-def _query_columns(d_s, goal, d_g, query_s, query_g):
-    """Queries as float32 columns ``[n_cols, Q]`` (the angle wrapped); shape errors raise, and
-    NaN/inf raise when the queries are concrete (under ``jit`` they have no members)."""
-    shape_g = None if query_g is None else jnp.shape(query_g)
-    if jnp.ndim(query_s) != 2 or jnp.shape(query_s)[1] != d_s:
-        raise ValueError(f"query_s must be [Q, {d_s}] (the data's d_s), got {jnp.shape(query_s)}")
-    q = jnp.shape(query_s)[0]
-    if goal == "none" and query_g is not None:
-        raise ValueError(f"the data have no goals; pass query_g=None (got goals of shape {shape_g})")
-    if goal == "angle" and shape_g != (q,):
-        raise ValueError(f"the data goals are angles: query_g must be [{q}], got {shape_g}")
-    if goal == "vector" and shape_g != (q, d_g):
-        raise ValueError(f"the data goals are vectors: query_g must be [{q}, {d_g}], got {shape_g}")
-    for name, x in (("query_s", query_s), ("query_g", query_g)):
-        if x is not None and not isinstance(x, jax.core.Tracer) and not np.isfinite(np.asarray(x)).all():
-            raise ValueError(f"{name} contains NaN or inf; fix those queries (under jit they get level -1)")
-    s = jnp.asarray(query_s, jnp.float32).T
-    if goal == "none":
-        return s
-    g = jnp.asarray(query_g, jnp.float32)
-    return jnp.concatenate([s, _wrap_jit(g)[None, :] if goal == "angle" else g.T], axis=0)
-
-
-def _hash_keys(seed, n):
-    """``[n]`` int32 in ``[1, 2^31)``: independent uniform sort keys of a query's entries."""
-    e = jnp.arange(n, dtype=jnp.uint32)
-    h = _mix32(_mix32(e ^ seed) + (seed * jnp.uint32(0x9E3779B9) + jnp.uint32(0x7F4A7C15)))
-    return (h >> 1).astype(jnp.int32) | 1
-
-
-def _scan_sample(lam, valid, seed, k, max_level):
-    """From entry levels ``lam [E]``: ``(entries [k], level, count)`` of one query, the
-    members drawn as the ``k`` largest hashed keys (a uniform k-subset; ties have
-    probability ``~m^2 / 2^31``)."""
-    lam = jnp.where(valid, lam, max_level + 1)
-    counts = jnp.cumsum(jnp.bincount(lam, length=max_level + 2))[:-1]
-    enough = counts >= k
-    found = enough.any()
-    level = jnp.where(found, jnp.argmax(enough), -1).astype(jnp.int32)
-    u = jnp.where((lam <= level) & found, _hash_keys(seed, lam.shape[0]), 0)
-    _, ent = jax.lax.top_k(u, k)
-    count = jnp.where(found, counts[jnp.maximum(level, 0)], counts[-1])
-    return jnp.where(found, ent.astype(jnp.int32), -1), level, count.astype(jnp.int32)
-
-
-# ----------------------------------------------------------------------------- scan engine
-
-
-@struct.dataclass
-class ScanIndex:
-    """A dataset's columns for :func:`query_neighbours_scan` (a pytree: pass it into ``jit``)."""
-
-    cols: jax.Array  # float32 [d_s + d_g, N]: states, then the wrapped angle or the goal vector
-    k: int = struct.field(pytree_node=False)
-    radius_s: float = struct.field(pytree_node=False)
-    radius_g: float = struct.field(pytree_node=False)
-    growth: float = struct.field(pytree_node=False)
-    d_s: int = struct.field(pytree_node=False)
-    goal: str = struct.field(pytree_node=False)  # "angle" | "vector" | "none"
-    max_level: int = struct.field(pytree_node=False)
-
-
-def _check_max_level(max_level):
-    if not isinstance(max_level, (int, np.integer)) or isinstance(max_level, bool) or max_level < 0:
-        raise ValueError(f"max_level must be an int >= 0, got {max_level!r}")
-
-
-def build_scan_index(data_s, data_g=None, *, k=20, radius_s=0.06, radius_g=0.1, growth=2 ** (1 / 3),
-                     max_level=8) -> ScanIndex:
-    """Validate the data (shapes, NaN/inf, ``k <= N``) and keep its columns for queries."""
-    _check_params(k, radius_s, radius_g, growth)
-    _check_max_level(max_level)
-    cols, d_s, kind, _ = _points(data_s, data_g, "data")
-    if cols.shape[1] < k:
-        raise ValueError(f"need at least k={k} data points to draw k distinct neighbours, got {cols.shape[1]}")
-    return ScanIndex(jnp.asarray(cols), int(k), float(radius_s), float(radius_g), float(growth), d_s, kind,
-                     int(max_level))
-
-
-def entry_levels(index: ScanIndex, q):
-    """``[N]`` int32: each data point's smallest level ``L <= max_level`` with the point in
-    ``B_L(q)`` (``max_level + 1`` if none); ``q [d_s + d_g]`` one query's columns."""
-    return _entry_levels(index.cols, q, d_s=index.d_s, goal=index.goal,
-                         tables=_level_tables(index.radius_s, index.radius_g, index.growth, index.max_level))
-
-
-def _one(index: ScanIndex, key, q):
-    lam = entry_levels(index, q)
-    # |B_L| for every L: a histogram of the entry levels, summed up (O(N), not O(levels N)).
-    counts = jnp.cumsum(jnp.bincount(lam, length=index.max_level + 2))[:-1]
-    enough = counts >= index.k
-    found = enough.any()
-    level = jnp.where(found, jnp.argmax(enough), -1).astype(jnp.int32)
-    u = jax.random.uniform(key, lam.shape, minval=0.5, maxval=1.0)  # members: keys > 0
-    _, idx = jax.lax.top_k(jnp.where((lam <= level) & found, u, 0.0), index.k)
-    count = jnp.where(found, counts[jnp.maximum(level, 0)], counts[-1])
-    return jnp.where(found, idx.astype(jnp.int32), -1), level, count.astype(jnp.int32)
-
-
-def query_neighbours_scan(index: ScanIndex, key, query_s, query_g=None, *,
-                          batch: int | None = None) -> Neighbours:
-    """Neighbourhoods ``B(s0, g0)`` of a batch of queries by a scan of all data: pure and jittable.
-
-    ``query_s [Q, d_s]``, ``query_g`` ``None`` / ``[Q]`` / ``[Q, d_g]`` as the data's goals.
-    Returns :class:`lazyq_jax.neighbours.Neighbours` with ``idx [Q, k]``, ``level [Q]``
-    (``-1``: none within ``max_level``; then ``idx == -1`` and ``count = |B_max_level|``)
-    and ``count [Q] = |B_level|``.  ``batch`` queries share one pass (``lax.map``);
-    default 1 on a CPU (measured at N = 1M, d_s = 5: 14 ms a query one at a time, 21 ms
-    in batches of 16) and 16 on accelerators.
-    """
-    if batch is None:
-        batch = 1 if jax.default_backend() == "cpu" else 16
-    d_g = index.cols.shape[0] - index.d_s
-    cols = _query_columns(index.d_s, index.goal, d_g, query_s, query_g).T
-    q = cols.shape[0]
-    keys = jax.random.split(key, q)
-    idx, level, count = jax.lax.map(lambda a: _one(index, *a), (keys, cols), batch_size=max(min(batch, q), 1))
-    return Neighbours(idx=idx, level=level, count=count)
 
 
 # ----------------------------------------------------------------------------- policy index
@@ -327,7 +114,7 @@ class Phase:
 
 
 @struct.dataclass
-class PolicyIndex:
+class PolicyIndex(IndexSettings):
     """Data sorted by grid cell, static capacities (see module docstring); build with
     :func:`build_policy_index`, stack seeds with :func:`stack_policy_indices`."""
 
@@ -335,167 +122,10 @@ class PolicyIndex:
     orig: jax.Array  # int32 [E]: data row of each entry
     offsets: jax.Array  # int32 [n_cells + 1]: first entry of each cell
     n_entries: jax.Array  # int32 []: entries of this dataset (E, or fewer when padded for stacking)
-    k: int = struct.field(pytree_node=False)
-    radius_s: float = struct.field(pytree_node=False)
-    radius_g: float = struct.field(pytree_node=False)
-    growth: float = struct.field(pytree_node=False)
-    d_s: int = struct.field(pytree_node=False)
-    goal: str = struct.field(pytree_node=False)  # "angle" | "vector" | "none"
-    d_g: int = struct.field(pytree_node=False)
     max_level: int = struct.field(pytree_node=False)
     n_rows: int = struct.field(pytree_node=False)  # rows of the (padded) dataset: idx < n_rows
     grid: tuple = struct.field(pytree_node=False)  # tuple[GridAxis]; () = scan every query
     phases: tuple = struct.field(pytree_node=False)  # tuple[Phase]; () with grid ()
-
-
-_MIN_SLOTS = 8
-_REF_BATCH = 320  # batch size the cost model assumes (a rollout's episodes)
-_CAP_QUANTILE = 99.0
-_CAP_MARGIN = 1.1
-_SLOT_MARGIN, _SLOT_EXTRA = 1.5, 0.03
-_RANGE_COST = 0.25  # items' worth of work a stencil range costs
-_SLOT_COST = 4.0  # items' worth of work a slot costs beyond its items (sampling)
-_PHASE_COST = 0.15  # an extra phase must save 15% (each adds ~2-3 s of compile on a 2-core CPU)
-_N_SAMPLE = 512  # sample queries for capacities
-_N_EST = 256  # sample queries for the level and cost estimates
-_EST_SUB = 1 << 16  # data subsample of the estimates
-
-
-def _sample_rows(rng, n, m):
-    return np.sort(rng.choice(n, m, replace=False)) if n > m else np.arange(n)
-
-
-def _axis_p2(col, block, periodic, radius, width, lo, hi):
-    """A grid axis of about ``width``: a power of two starting at a multiple of it (exact cells
-    under jit), or ``n`` cells tiling the circle (the angle)."""
-    if periodic:
-        n = max(1, math.floor(2 * math.pi / width + 1e-9))
-        return GridAxis(col, block, True, -math.pi, 2 * math.pi / n, n, radius)
-    w = 2.0 ** round(math.log2(width))
-    c0, c1 = math.floor(lo / w), math.floor(hi / w)
-    return GridAxis(col, block, False, c0 * w, w, c1 - c0 + 1, radius)
-
-
-def _make_grid(axes, widths, col_lo, col_hi, n_limit):
-    """Grid of ``axes`` (``(col, block, periodic, radius)``) with about ``widths`` (raw units),
-    all widths doubled until the offset table has at most ``n_limit`` cells."""
-    for _ in range(200):
-        grid = tuple(_axis_p2(*a, w, col_lo[a[0]], col_hi[a[0]]) for a, w in zip(axes, widths))
-        if math.prod(ax.n for ax in grid) <= n_limit:
-            return grid
-        widths = [2 * w for w in widths]
-    raise AssertionError("internal error: no grid fits the table limit")
-
-
-def _estimate_levels(cols, qcols, d_s, kind, radius_s, radius_g, growth, k, max_level, rng):
-    """Each sample query's level (``max_level + 1``: beyond) estimated from a subsample of the
-    data (counts scaled up): guides the speed of the layout only, never results."""
-    n = cols.shape[1]
-    sub = cols[:, _sample_rows(rng, n, _EST_SUB)]
-    scale = n / sub.shape[1]
-
-    def split(c):
-        g = None if kind == "none" else (c[d_s] if kind == "angle" else c[d_s:].T)
-        return c[:d_s].T, g
-
-    ds, dg = split(sub)
-    out = []
-    for i in range(0, qcols.shape[1], 16):
-        qs, qg = split(qcols[:, i:i + 16])
-        lam = membership_level_reference(ds, dg, qs, qg, radius_s=radius_s, radius_g=radius_g, growth=growth,
-                                         max_level=max_level)
-        counts = np.stack([(lam <= lv).sum(1) for lv in range(max_level + 1)], axis=1) * scale
-        enough = counts >= k
-        out.append(np.where(enough.any(1), np.argmax(enough, axis=1), max_level + 1))
-    return np.concatenate(out)
-
-
-def _needs(grid, offsets, qcols, level, growth, scale=1.0):
-    """Items (of ``W`` entries) each query's level-``level`` stencil needs: exact with the full
-    table (``scale`` 1), estimated from a subsample's table otherwise."""
-    ip, fr, _ = _query_cells(grid, qcols)
-    _, length, _ = _ranges(np, grid, offsets, ip.astype(np.int64), fr, level, growth)
-    return np.ceil(length * scale / W).sum(axis=1)
-
-
-def _n_ranges(grid, level, growth):
-    return int(np.prod([ax.enum(level, growth)[0] for ax in grid[:-1]], dtype=np.int64)) if grid else 1
-
-
-def _fractions(his, levels):
-    """Slot fraction of each phase after the first: 1.5x the estimated share of queries still
-    short of ``k`` after the previous phase, +3%."""
-    return [1.0] + [min(1.0, _SLOT_MARGIN * float(np.mean(levels > h)) + _SLOT_EXTRA) for h in his[:-1]]
-
-
-def _schedule_cost(grid, his, fracs, need_q, growth, n_entries):
-    """Work per query (in items) of a schedule: every phase's pool, ranges and slots."""
-    cost = 0.0
-    for hi, frac in zip(his, fracs):
-        r = _n_ranges(grid, hi, growth)
-        if r * 4 * W > max(n_entries, 4 * W):  # more ranges than a scan has items
-            return math.inf
-        slots = 1.0 if frac == 1.0 else min(1.0, max(_MIN_SLOTS / _REF_BATCH, frac))
-        cost += slots * (_CAP_MARGIN * need_q[hi] + _RANGE_COST * r + _SLOT_COST)
-    return cost * (1 + _PHASE_COST * (len(his) - 1))
-
-
-def _candidate_schedules(levels, max_level):
-    """Phase top levels: one phase, or phases ending where 50..97% of the sample stops."""
-    qs = sorted({int(min(np.percentile(levels, p, method="higher"), max_level)) for p in (50, 75, 90, 97)})
-    out = [(max_level,)] + [(h, max_level) for h in qs if h < max_level]
-    out += [(a, b, max_level) for a in qs for b in qs if a < b < max_level]
-    return out
-
-
-def _choose_layout(cols, d_s, kind, d_g, radius_s, radius_g, growth, max_level, k, qcols, col_lo, col_hi, rng):
-    """Cheapest ``(grid, phase top levels)`` by :func:`_schedule_cost` on a data subsample, over
-    axis prefixes (by selectivity at the typical level), power-of-two cell widths and the
-    schedules of :func:`_candidate_schedules`; ``((), ())`` if a scan is cheaper."""
-    n = cols.shape[1]
-    est_q = qcols[:, _sample_rows(rng, qcols.shape[1], _N_EST)]
-    levels = _estimate_levels(cols, est_q, d_s, kind, radius_s, radius_g, growth, k, max_level, rng)
-    schedules = _candidate_schedules(levels, max_level)
-    h_ref = int(min(np.median(levels), max_level))
-    sub = cols[:, _sample_rows(rng, n, _EST_SUB)]
-    scale = n / sub.shape[1]
-    info = _axes_info(d_s, kind, d_g, radius_s, radius_g)
-    sel = []
-    for col, _block, periodic, radius in info:  # fraction of the data within the typical radius
-        x = np.sort(sub[col].astype(np.float64))
-        r = radius * growth**h_ref
-        if periodic:
-            x = np.concatenate([x - 2 * np.pi, x, x + 2 * np.pi])
-        q = est_q[col].astype(np.float64)
-        sel.append(float(((np.searchsorted(x, q + r) - np.searchsorted(x, q - r)) / sub.shape[1]).mean()))
-    order = [info[i] for i in np.argsort(sel, kind="stable")]
-    best, best_cost = ((), ()), n / W + _SLOT_COST  # the scan
-    seen = set()
-    for m in range(1, min(MAX_GRID_AXES, len(order)) + 1):
-        axes = order[:m]
-        axes = [a for a in axes if a[2]] + [a for a in axes if not a[2]]  # periodic first
-        if axes[-1][2]:
-            continue  # the contiguous (last) axis must not be periodic
-        for h_other in (0.5, 1.0, 2.0):
-            for h_last in (0.25, 0.5, 1.0):
-                if h_last > h_other or (m == 1 and h_other != 1.0):
-                    continue
-                widths = [(h_other if j < m - 1 else h_last) * a[3] * growth**h_ref for j, a in enumerate(axes)]
-                grid = _make_grid(axes, widths, col_lo, col_hi, _table_limit(n))
-                if grid in seen:
-                    continue
-                seen.add(grid)
-                offsets = _offsets(grid, _table(grid, sub)[0])
-                need_q = {}
-                for sched in schedules:
-                    for h in sched:
-                        if h not in need_q:
-                            need_q[h] = float(np.percentile(_needs(grid, offsets, est_q, h, growth, scale),
-                                                            _CAP_QUANTILE))
-                    cost = _schedule_cost(grid, sched, _fractions(sched, levels), need_q, growth, n)
-                    if cost < best_cost * 0.98:
-                        best, best_cost = (grid, sched), cost
-    return best[0], best[1], levels
 
 
 def _check_data(data_s, data_g, n_valid):
@@ -547,7 +177,7 @@ def _layout(cols, n_rows, *, params, grid, his, fracs, capacity, qcols):
         lo = 0
         for hi, frac, cap in zip(his, fracs, caps):
             if cap is None:
-                need = _needs(grid, offsets, qcols, hi, growth)
+                need = _stencil_items(grid, offsets, qcols, hi, growth).sum(axis=1)
                 cap = max(1, math.ceil(_CAP_MARGIN * float(np.percentile(need, _CAP_QUANTILE))))
             phases.append(Phase(lo, hi, 1.0 if lo == 0 else frac, _MIN_SLOTS, int(cap)))
             lo = hi + 1
@@ -640,7 +270,8 @@ def build_policy_index(data_s, data_g=None, *, k, radius_s, radius_g, growth, ma
         chosen, auto_his, levels = _choose_layout(cols, d_s, kind, d_g, radius_s, radius_g, growth, max_level, k,
                                                   qcols, col_lo, col_hi, rng)
     else:
-        chosen, auto_his = _forced_grid(grid, d_s, kind, d_g, radius_s, radius_g, col_lo, col_hi, n), (max_level,)
+        axes, widths, _ = _grid_spec(grid, _axes_info(d_s, kind, d_g, radius_s, radius_g))
+        chosen, auto_his = (_grid_p2(axes, widths, col_lo, col_hi, _table_limit(n)) if axes else ()), (max_level,)
     if chosen and his is None:
         his, fracs = auto_his, [None] * len(auto_his)
     if chosen:
@@ -659,26 +290,6 @@ def build_policy_index(data_s, data_g=None, *, k, radius_s, radius_g, growth, ma
     return index
 
 
-def _forced_grid(spec, d_s, kind, d_g, radius_s, radius_g, col_lo, col_hi, n):
-    info = _axes_info(d_s, kind, d_g, radius_s, radius_g)
-    message = (f"grid must list at most {MAX_GRID_AXES} distinct axes in [0, {len(info)}) as (axis, width) "
-               f"with finite positive widths, got {spec!r}")
-    try:
-        spec = [(a, float(w)) for a, w in spec]
-    except (TypeError, ValueError) as e:
-        raise ValueError(message) from e
-    if any(isinstance(a, bool) or not isinstance(a, (int, np.integer)) for a, _ in spec):
-        raise ValueError(message)
-    if (len(spec) > MAX_GRID_AXES or any(not 0 <= a[0] < len(info) for a in spec)
-            or len({a[0] for a in spec}) != len(spec) or any(not 0 < a[1] < math.inf for a in spec)):
-        raise ValueError(message)
-    if spec and info[spec[-1][0]][2]:
-        raise ValueError("the last grid axis must not be the (periodic) angle")
-    if not spec:
-        return ()
-    return _make_grid([info[a[0]] for a in spec], [float(a[1]) for a in spec], col_lo, col_hi, _table_limit(n))
-
-
 def _data_of(index: PolicyIndex):
     """The valid rows' columns ``[n_cols, n_valid]`` back from an index (rows ``0..n_valid-1``)."""
     e = int(index.n_entries)
@@ -689,10 +300,6 @@ def _data_of(index: PolicyIndex):
 
 
 _SETTINGS = ("k", "radius_s", "radius_g", "growth", "d_s", "goal", "d_g", "max_level")
-
-
-def _pow2(n: int) -> int:
-    return 1 << max(int(n) - 1, 0).bit_length()
 
 
 def stack_policy_indices(indices, *, seed=0, like: PolicyIndex | None = None) -> PolicyIndex:
@@ -739,7 +346,7 @@ def stack_policy_indices(indices, *, seed=0, like: PolicyIndex | None = None) ->
         if first.grid:
             info = {a[0]: a for a in _axes_info(first.d_s, first.goal, first.d_g, first.radius_s, first.radius_g)}
             n_max = max(d.shape[1] for d in datas)
-            grid = _make_grid([info[ax.col] for ax in first.grid], [ax.width for ax in first.grid], lo, hi,
+            grid = _grid_p2([info[ax.col] for ax in first.grid], [ax.width for ax in first.grid], lo, hi,
                               _table_limit(n_max))
         else:
             grid = ()
@@ -846,7 +453,8 @@ def _scan_query(index: PolicyIndex, seed, q):
     """The exact result of one query by a scan of all entries (the fallback)."""
     e = index.orig.shape[0]
     lam = _entry_levels(index.cols[:, :e], q, d_s=index.d_s, goal=index.goal,
-                        tables=_level_tables(index.radius_s, index.radius_g, index.growth, index.max_level))
+                        tables=_level_tables(index.radius_s, index.radius_g, index.growth,
+                                             np.arange(index.max_level + 1)))
     valid = jnp.arange(e) < index.n_entries
     ent, level, count = _scan_sample(lam, valid, seed, index.k, index.max_level)
     return jnp.where(ent >= 0, index.orig[jnp.maximum(ent, 0)], -1), level, count
