@@ -25,7 +25,7 @@ import pytest
 
 from lazyq_jax.agents import bc, dqn, iql, naf, reference, td3bc
 from lazyq_jax.agents.base import Problem, Spec
-from lazyq_jax.agents.common import BaselineConfig, random_actions
+from lazyq_jax.agents.common import BaselineConfig
 from lazyq_jax.config import ConfigError
 
 C = 0.1
@@ -345,39 +345,65 @@ def test_dqn_box_codebook_is_the_grid_and_nearest_rounds():
     np.testing.assert_allclose(dist[np.arange(len(a)), got], dist.min(1), rtol=1e-6)
 
 
-@pytest.mark.parametrize("n_a, problem", [(2, BALL), (3, BALL), (3, BOX)],
-                         ids=["2-ball", "3-ball", "3-box"])
-def test_naf_maximum_over_the_action_set_is_v(n_a, problem):
+def action_grid(problem, n_a, points=4000):
+    """A brute-force grid of the action set in units of ``c``: the box ``[-1, 1]^n_a`` (a
+    cartesian grid of about ``points`` points), or the ball ``|a| <= 1`` (a Fibonacci
+    sphere of ``points`` directions, or 3600 angles in 2-D, at radii 1, 0.75, 0.5, 0.25, and 0)."""
+    if problem.action_set == "box":
+        side = np.linspace(-1, 1, round(points ** (1 / n_a)))
+        return np.stack(np.meshgrid(*[side] * n_a), -1).reshape(-1, n_a)
+    if n_a == 2:
+        t = np.linspace(0, 2 * np.pi, 3600, endpoint=False)
+        sphere = np.stack([np.cos(t), np.sin(t)], 1)
+    else:  # Fibonacci sphere
+        z = 1 - (2 * np.arange(points) + 1) / points
+        t = np.pi * (3 - np.sqrt(5)) * np.arange(points)
+        r = np.sqrt(1 - z * z)
+        sphere = np.stack([r * np.cos(t), r * np.sin(t), z], 1)
+    return np.concatenate([sphere * radius for radius in (1.0, 0.75, 0.5, 0.25)] + [np.zeros((1, n_a))])
+
+
+@pytest.mark.parametrize("n_a, problem", [(2, BALL), (3, BALL), (2, BOX), (3, BOX)],
+                         ids=["2-ball", "3-ball", "2-box", "3-box"])
+def test_naf_greedy_action_is_the_maximiser_over_a_grid_of_the_action_set(n_a, problem):
+    """Eq. 3 with random anisotropic ``P``: no point of a brute-force grid of the action
+    set has a larger Q than the policy's action ``c mu``, and ``Q(c mu) = V``."""
     agent = naf.make(naf.NAFConfig(width=16, depth=2), problem)
     data = reference.line_task(6, 64, n_a, "vector")
     s, g = data.s[:32], data.g[:32]
+    grid = action_grid(problem, n_a)
 
     @jax.jit
-    def heads_and_q(key):
+    def q_of(key):
         params = agent.init(key, data).model["params"]
-        # Scale the parameters up so that L is far from the identity and mu far from 0.
+        # Noise on the parameters: L far from the identity (condition numbers of P from
+        # about 3 to 10^6), mu far from 0.
         noise = lambda x: 0.3 * jax.random.normal(jax.random.PRNGKey(1), x.shape)
-        params = jax.tree.map(lambda x: 3.0 * x + noise(x), params)
-        _, mu, l = agent.heads(params, s, g)
-        # Q and V at c mu (first) and at 256 uniform actions of the set.
-        samples = random_actions(jax.random.PRNGKey(2), problem, (256, 32, n_a))
-        a = jnp.concatenate([C * mu[None], samples])
-        q, v = jax.vmap(lambda x: agent.q_value(params, s, g, x)[:2])(a)
-        return mu, l, q, v[0]  # V does not depend on the action
+        params = jax.tree.map(lambda x: x + noise(x), params)
+        act = agent.actions({"params": params}, s, g)
+        a = jnp.concatenate([act[None], C * jnp.broadcast_to(jnp.asarray(grid[:, None], jnp.float32),
+                                                             (len(grid), 32, n_a))])
+        q = jax.vmap(lambda x: agent.q_value(params, s, g, x)[0])(a)
+        return (act, q, *agent.heads(params, s, g))
 
-    mu, l, q, v = (np.asarray(x, np.float64) for x in heads_and_q(jax.random.PRNGKey(0)))
-    p = l @ np.swapaxes(l, 1, 2)  # L L^T in float64: PSD up to the eigen solver's rounding
+    act, q, v, mu, l = (np.asarray(x, np.float64) for x in q_of(jax.random.PRNGKey(0)))
+    assert_on_set(act, problem, n_a)
+    np.testing.assert_allclose(act, C * mu, rtol=2 * np.finfo(np.float32).eps)  # c mu, rounded
+    p = l @ np.swapaxes(l, 1, 2)  # L L^T in float64
     eig = np.linalg.eigvalsh(p)
-    assert np.all(eig >= -64 * np.finfo(np.float64).eps * np.abs(eig).max(axis=1, keepdims=True))
-    assert_on_set(C * mu, problem, n_a)
-    # Q(c mu) = V: d = a / c - mu vanishes up to rounding ((c mu) / c, and mu perhaps
-    # computed twice), |d_i| <= 8 eps, so |Q - V| <= 1/2 lambda_max(P) n_a (8 eps)^2,
-    # plus the rounding of V + advantage.
-    eps = np.finfo(np.float32).eps
-    tol = 0.5 * eig.max(axis=1) * n_a * (8 * eps) ** 2 + eps * np.abs(v)
-    assert np.all(np.abs(q[0] - v) <= tol), np.abs(q[0] - v) / tol
-    # Every sampled action of the set has Q <= V: V plus a negative square, rounded.
-    assert np.all(q[1:] <= v[None])
+    assert np.all(eig > 0)  # positive definite (exponentiated diagonal)
+    assert np.median(eig[:, -1] / eig[:, 0]) > 10  # anisotropic: no pass by symmetry
+    # The agent's Q against Eq. 3 in float64 at the action and every grid point: float32
+    # rounding of V, of the quadratic term and of d = a / c - mu (|delta d| <= a few eps,
+    # so |delta quad| <= lambda_max |d| |delta d|).
+    d = np.concatenate([act[None] / C, np.broadcast_to(grid[:, None], (len(grid), *act.shape))]) - mu
+    quad = 0.5 * np.einsum("kbi,bij,kbj->kb", d, p, d)
+    norm = np.sqrt(np.sum(d * d, -1))
+    tol = 64 * np.finfo(np.float32).eps * (np.abs(v) + quad + eig[:, -1] * norm)
+    assert np.all(np.abs(q - (v - quad)) <= tol)
+    assert np.all(np.abs(q[0] - v) <= tol[0])  # Q(c mu) = V
+    # No grid point beats the policy's action beyond that rounding.
+    assert np.all(q[1:] <= q[0] + tol[1:] + tol[0]), np.max(q[1:] - q[0] - tol[1:] - tol[0])
 
 
 # ----------------------------------------------------------------------------- errors
