@@ -111,7 +111,7 @@ def gather(run_dirs: Sequence[Path], methods: Sequence[str] | None = None,
             settings = {**{f: lookup(config, f)[1] for f in differ}, **acting}
             row = rows.setdefault(json.dumps([name, settings], sort_keys=True), Row(name, settings, acting))
             t = m.get("timings", {})
-            spent = (t["train_s"] + t.get("prepare_s", 0.0)) / len(results["seeds"]) if "train_s" in t else None
+            spent = (t["train_s"] + t.get("prepare_s", 0.0)) / len(results["seeds"]) if t.get("train_s") else None
             for seed_row in m["per_seed"]:
                 seed = seed_row["seed"]
                 if seed in row.seeds:
