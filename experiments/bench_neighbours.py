@@ -286,7 +286,7 @@ def run_old_against_new(old_package, case, s, g):
             lambda run=run, index=indices[v]: run(index, jax.random.key(1)))
     times = alternating(fns, ARGS.repeats)
     for name, v in times.items():
-        print(f"  {name:12s} median {np.median(v):.3f} s   " + " ".join(f"{x:.3f}" for x in v))
+        print(f"  {name:12s} median {np.median(v):.4g} s   " + " ".join(f"{x:.4g}" for x in v))
     for what in sorted({name.split()[1] for name in times}):
         new, old = np.array(times[f"new {what}"]), np.array(times[f"old {what}"])
         print(f"  {what}: new / old median {np.median(new) / np.median(old):.3f}, paired ratio median "
