@@ -15,7 +15,7 @@
 #   bash experiments/device_check.sh search [query] [arm] [layouts]   (any of these, in order)
 #     search: the paper-scale neighbour search (issue 22, experiments/bench_neighbours.py),
 #       build_index on the device and on the host in the same run (bitwise compared);
-#     query: the policy's per-step query (bench_neighbours_query.py);
+#     query: the policy's per-step query (bench_neighbours.py --cases q3,q5);
 #     arm: `arm` at 10x the paper's random moves (issue 23's data lever: 50,000 starts x 2
 #       moves, each stored with 10 goals: the rows, and so the training's cost, of `static4x`),
 #       ARM_SEEDS (default 5) seeds vmapped, trained and evaluated: $OUT/arm_50000_10.tgz;
@@ -96,14 +96,14 @@ search() {
     if [ "$(left)" -gt 30 ]; then
         log "search: $(left) s left"
         timeout $(( $(left) < 90 ? $(left) : 90 )) python3 experiments/bench_neighbours.py --repeats 3 \
-            --skip-scipy --check 60 --n "${SEARCH_N:-1000000}" --build auto,host > "$OUT/search.log" 2>&1
+            --skip-baseline --check 60 --n "${SEARCH_N:-1000000}" --build auto,host > "$OUT/search.log" 2>&1
         log "search: exit $?"
     fi
 }
 query() {
     if [ "$(left)" -gt 20 ]; then
         log "query: $(left) s left"
-        timeout "$(left)" python3 experiments/bench_neighbours_query.py --repeats 2 ${QUERY_EXTRA:-} \
+        timeout "$(left)" python3 experiments/bench_neighbours.py --cases q3,q5 --repeats 2 ${QUERY_EXTRA:-} \
             > "$OUT/query.log" 2>&1
         log "query: exit $?"
     fi
