@@ -9,6 +9,7 @@ from __future__ import annotations
 from lazyq_jax.config import Config, ConfigError, from_dict
 from lazyq_jax.tasks.arm import ArmTask
 from lazyq_jax.tasks.base import Task
+from lazyq_jax.tasks.cube import CubeTask
 from lazyq_jax.tasks.pointmaze import PointMazeTask
 from lazyq_jax.tasks.push import PushTask
 
@@ -17,6 +18,7 @@ TASKS: dict[str, Task] = {
     "arm": ArmTask("arm", disk_range=None),
     "arm-long": ArmTask("arm-long", disk_range=0.3, start_range=0.6),
     "pointmaze": PointMazeTask(),
+    "cube-single-play": CubeTask(),
 }
 
 
