@@ -44,7 +44,7 @@ from lazyq_jax.config import ConfigError, TrainConfig
 from lazyq_jax.local_model import expectile_loss, safe_norm
 from lazyq_jax.networks import ValueNetwork, goal_kind
 from lazyq_jax.parallel import AXIS, check_divisible, mesh_size
-from lazyq_jax.targets import (bootstrap_table, double_dqn_target, in_sample_target, lazy_target,
+from lazyq_jax.targets import (bootstrap_table, double_dqn_target, fit_projection, in_sample_target, lazy_target,
                                local_fits, multi_step_transitions)
 from lazyq_jax.types import Transitions
 
@@ -69,6 +69,8 @@ class Trainer(NamedTuple):
     run_cycle: Callable
     train: Callable
     value_fn: Callable  # value_fn(state) -> V(s[B, d_s], g) in inference mode
+    #: projection(data, idx, weights) -> P [N, 1 + n_a, k] or None: the fits' data-only part
+    projection: Callable
 
 
 def shuffle(key: jax.Array, n: int, n_valid: jax.Array) -> jax.Array:
@@ -145,7 +147,8 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
                    probes=probes, progress=progress)
     return Trainer(config, network, setup.optimizer, functools.partial(_init, setup),
                    functools.partial(_epoch, setup), functools.partial(_run_cycle, setup),
-                   functools.partial(_train, setup), functools.partial(_value_fn, setup))
+                   functools.partial(_train, setup), functools.partial(_value_fn, setup),
+                   functools.partial(_projection, setup))
 
 
 def _check_arguments(config, mesh, action_set, state_offsets, goal_offsets, state_scale,
@@ -242,19 +245,35 @@ def _value_fn(setup: _Setup, state: TrainState) -> Callable:
     return lambda s, g: setup.network.apply(variables, s, g, train=False)
 
 
-def _local_fits(setup: _Setup, state: TrainState, paths: Transitions, gamma, idx: jax.Array, weights):
+def _projection(setup: _Setup, data: Transitions, idx: jax.Array, weights=None):
+    """The local fits' data-only part for these neighbourhoods (:func:`fit_projection`), or
+    None where the cycle fits no local model or needs more than ``alpha, beta``
+    (``target_max`` ``"next"``, ``"expectile"``).  The neighbourhoods, actions and offsets
+    do not change between cycles, so a cycle's fits are then a gather and a product."""
+    config = setup.config
+    if config.target_max in ("next", "expectile"):
+        return None
+    return fit_projection(data, idx, state_offsets=setup.state_offsets,
+                          goal_offsets=setup.goal_offsets, weights=weights,
+                          batch_size=config.target_batch_size, mesh=setup.mesh)
+
+
+def _local_fits(setup: _Setup, state: TrainState, paths: Transitions, gamma, idx: jax.Array, weights,
+                projection=None):
     """Eq. (5)-(6): each row's local model fitted to its neighbours' brackets under ``state``'s V
-    (``paths``, ``gamma``: :func:`multi_step_transitions`', the data and gamma with target_steps 1)."""
+    (``paths``, ``gamma``: :func:`multi_step_transitions`', the data and gamma with target_steps 1;
+    ``projection``: :func:`_projection`'s, which holds the ``weights``)."""
     config = setup.config
     return local_fits(_value_fn(setup, state), paths, idx, gamma=gamma,
                       batch_size=config.target_batch_size, mesh=setup.mesh,
                       state_offsets=setup.state_offsets, goal_offsets=setup.goal_offsets,
-                      weights=weights, in_sample=config.target_max == "expectile",
-                      row_goal=config.bootstrap_goal == "row")
+                      weights=None if projection is not None else weights,
+                      in_sample=config.target_max == "expectile",
+                      row_goal=config.bootstrap_goal == "row", projection=projection)
 
 
 def _targets(setup: _Setup, frozen: TrainState, data: Transitions, paths: Transitions, gamma,
-             idx: jax.Array, weights):
+             idx: jax.Array, weights, projection=None):
     """The cycle's targets from the frozen network (the DQN target network, Eq. 11-12):
     ``((Y, clip active), (alpha, beta, y_nb))``; Eq. (7)-(8) by default, the ablations by
     ``train.target_max``.  The fits are None where no local model is fitted."""
@@ -263,7 +282,7 @@ def _targets(setup: _Setup, frozen: TrainState, data: Transitions, paths: Transi
         y = bootstrap_table(_value_fn(setup, frozen), paths, gamma, config.target_batch_size,
                             setup.mesh)
         return (y, jnp.zeros(y.shape, bool)), (None, None, None)
-    alpha, beta, y_nb = _local_fits(setup, frozen, paths, gamma, idx, weights)
+    alpha, beta, y_nb = _local_fits(setup, frozen, paths, gamma, idx, weights, projection)
     if config.target_max == "expectile":  # y_nb: the neighbours' values moved to the row
         return in_sample_target(y_nb, config.target_expectile, weights), (alpha, beta, y_nb)
     actions = data.a[idx] if config.target_max == "data" else None
@@ -335,9 +354,12 @@ def _epoch(setup: _Setup, state: TrainState, data: Transitions, y: jax.Array, ke
 
 
 def _run_cycle(setup: _Setup, state: TrainState, data: Transitions, idx: jax.Array,
-               n_valid: jax.Array | None = None, weights: jax.Array | None = None):
+               n_valid: jax.Array | None = None, weights: jax.Array | None = None,
+               projection: jax.Array | None = None):
     """One cycle of fitted value iteration: targets from the frozen network, then
-    ``epochs`` epochs of regression towards them, then the cycle's metrics."""
+    ``epochs`` epochs of regression towards them, then the cycle's metrics.  ``projection``:
+    :func:`_projection` of ``data, idx, weights`` (computed once for many cycles), else the
+    local models are solved afresh."""
     config = setup.config
     _check_state(setup, state, data, "run_cycle")
     n_valid = valid_rows(data, n_valid)
@@ -345,13 +367,13 @@ def _run_cycle(setup: _Setup, state: TrainState, data: Transitions, idx: jax.Arr
     key, k_epochs = jax.random.split(state.key)
     # Each row's h-step transition (h <= target_steps; the data as they are with 1), once a cycle.
     paths, gamma = multi_step_transitions(data, config.target_steps, config.gamma)
-    targets, (alpha, beta, y_nb) = _targets(setup, state, data, paths, gamma, idx, weights)
+    targets, (alpha, beta, y_nb) = _targets(setup, state, data, paths, gamma, idx, weights, projection)
 
     def one_epoch(state, xs):
         e, k = xs
         y, active = targets
         if config.double_dqn:  # Eq. (13)-(14): the online network picks the action
-            _, beta_online, _ = _local_fits(setup, state, paths, gamma, idx, weights)
+            _, beta_online, _ = _local_fits(setup, state, paths, gamma, idx, weights, projection)
             y, active = double_dqn_target(alpha, beta, beta_online, y_nb, setup.action_length,
                                           config.clip, setup.action_set)
         state, loss = _epoch(setup, state, data, y, k, n_valid)
@@ -382,9 +404,12 @@ def _run_cycle(setup: _Setup, state: TrainState, data: Transitions, idx: jax.Arr
 
 def _train(setup: _Setup, key: jax.Array, data: Transitions, idx: jax.Array,
            n_valid: jax.Array | None = None, weights: jax.Array | None = None):
-    """All ``config.cycles`` cycles in one ``lax.scan``, from :func:`_init`."""
+    """All ``config.cycles`` cycles in one ``lax.scan``, from :func:`_init` (the local fits'
+    projection computed once before them)."""
+    projection = _projection(setup, data, idx, weights)
+
     def cycle(state, _):
-        return _run_cycle(setup, state, data, idx, n_valid, weights)
+        return _run_cycle(setup, state, data, idx, n_valid, weights, projection)
 
     return jax.lax.scan(cycle, _init(setup, key, data), None, length=setup.config.cycles)
 

@@ -11,8 +11,8 @@ from scipy.optimize import brentq
 
 from lazyq_jax.config import ConfigError, TrainConfig
 from lazyq_jax.local_model import RIDGE, precompute_projection
-from lazyq_jax.targets import (bootstrap_values, dataset_targets, evaluate_in_batches, in_sample_target,
-                               lazy_target, local_fits)
+from lazyq_jax.targets import (bootstrap_values, dataset_targets, evaluate_in_batches, fit_projection,
+                               in_sample_target, lazy_target, local_fits)
 from lazyq_jax.types import Transitions
 
 
@@ -139,8 +139,17 @@ def test_local_fits_with_goal_offsets_against_lstsq(goal):
     v = lambda s_, g_: jnp.sum(s_, -1) * 0.3 + (jnp.sum(g_, -1) if g_.ndim == 2 else jnp.cos(g_))
     alpha, beta, y_nb = local_fits(v, data, jnp.asarray(idx), gamma=0.9, state_offsets=True,
                                    goal_offsets=True)
+    # The same fits from the data-only projection, computed once (fit_projection), weighted too.
+    w = rng.uniform(0.2, 1.0, (n, k)).astype(np.float32)
+    project = functools.partial(fit_projection, data, jnp.asarray(idx), state_offsets=True,
+                                goal_offsets=True, batch_size=7)
+    fits = functools.partial(local_fits, v, data, jnp.asarray(idx), gamma=0.9, state_offsets=True,
+                             goal_offsets=True)
+    alpha_p, beta_p, y_nb_p = fits(projection=project())
+    alpha_w, beta_w, _ = fits(projection=project(weights=jnp.asarray(w)))
     y = np.asarray(data.r) + 0.9 * np.asarray(v(data.s_next, data.g))
     np.testing.assert_allclose(y_nb, y[idx], rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(y_nb_p, y_nb)
     a = np.asarray(data.a, np.float64)
     for i in range(n):
         dg = g[idx[i]] - g[i]
@@ -149,8 +158,15 @@ def test_local_fits_with_goal_offsets_against_lstsq(goal):
         x = np.concatenate([np.ones((k, 1)), a[idx[i]], s[idx[i]] - s[i], dg], 1)
         coef = np.linalg.lstsq(x, y[idx[i]], rcond=None)[0]
         scale = np.abs(coef).max() + np.abs(y[idx[i]]).max()
-        np.testing.assert_allclose(alpha[i], coef[0], atol=2e-3 * scale)
-        np.testing.assert_allclose(beta[i], coef[1:3], atol=2e-3 * scale)
+        root_w = np.sqrt(w[i].astype(np.float64))[:, None]
+        coef_w = np.linalg.lstsq(x * root_w, y[idx[i]] * root_w[:, 0], rcond=None)[0]
+        scale_w = np.abs(coef_w).max() + np.abs(y[idx[i]]).max()
+        for got_a, got_b, c, sc in ((alpha, beta, coef, scale), (alpha_p, beta_p, coef, scale),
+                                    (alpha_w, beta_w, coef_w, scale_w)):
+            np.testing.assert_allclose(got_a[i], c[0], atol=2e-3 * sc)
+            np.testing.assert_allclose(got_b[i], c[1:3], atol=2e-3 * sc)
+    with pytest.raises(ValueError, match="in_sample"):
+        fits(projection=project(), in_sample=True)
 
 
 def test_lazy_target_over_the_neighbours_actions():

@@ -59,7 +59,9 @@ class Neighbourhoods:
     """``idx [N, k]`` of every transition's neighbourhood, its growth ``level [N]`` and, with
     ``neighbours.fit_weights="epanechnikov"``, the local fits' ``weights [N, k]``; with
     ``train.relabel_every``, the goals ``g``, rewards ``r`` and ``done`` that the cycles train
-    on (the rows' own in the first period, fresh ones later; the neighbourhoods are theirs)."""
+    on (the rows' own in the first period, fresh ones later; the neighbourhoods are theirs);
+    ``projection``: the local fits' data-only part (:func:`lazyq_jax.targets.fit_projection`),
+    found with the neighbourhoods and used by every cycle until the next ones."""
 
     idx: jax.Array
     level: jax.Array
@@ -67,6 +69,7 @@ class Neighbourhoods:
     g: jax.Array | None = None
     r: jax.Array | None = None
     done: jax.Array | None = None
+    projection: jax.Array | None = None
 
     def on(self, data: Transitions) -> Transitions:
         """``data`` with the fresh goals, if any."""
@@ -94,6 +97,8 @@ class LazyAgent(Agent):
                                   state_offsets=config.neighbours.local_model != "action",
                                   goal_offsets=config.neighbours.local_model == "action+state+goal",
                                   state_scale=problem.state_scale, probes=problem.probes, mesh=mesh)
+        # The local fits' data-only part, once a neighbourhood set (None where not used).
+        self._project = jax.jit(self.trainer.projection)
         self.subgoal_steps = config.neighbours.subgoal_steps
         # The policy values the neighbours at each step (at the query's goal with
         # bootstrap_goal="row", at a subgoal with subgoal_steps) rather than from the table.
@@ -216,14 +221,20 @@ class LazyAgent(Agent):
                                 radius_s=nc.radius_s, radius_g=nc.radius_g, growth=nc.growth,
                                 max_level=0, capacity=data.size, bounds=self.problem.search_bounds)
             nb = search_all(index, key, x, data_g, mesh=self.mesh, n_queries=n)
-            return Neighbourhoods(nb.idx, nb.level, self.fit_weights(x, data_g, nb.idx, nb.level), **goals)
+            return self._with_projection(data, Neighbourhoods(
+                nb.idx, nb.level, self.fit_weights(x, data_g, nb.idx, nb.level), **goals))
         g = None if data_g is None else data_g[:n]
         nb = find_neighbours(key, x[:n], g, x[:n], g, k=nc.k, radius_s=nc.radius_s,
                              radius_g=nc.radius_g, growth=nc.growth, mesh=self.mesh)
         pad = data.size - n
         idx = jnp.concatenate([nb.idx, jnp.zeros((pad, nc.k), jnp.int32)])
         level = jnp.concatenate([nb.level, jnp.zeros((pad,), jnp.int32)])
-        return Neighbourhoods(idx, level, self.fit_weights(x, data_g, idx, level), **goals)
+        return self._with_projection(data, Neighbourhoods(idx, level, self.fit_weights(x, data_g, idx, level),
+                                                          **goals))
+
+    def _with_projection(self, data: Transitions, nb: Neighbourhoods) -> Neighbourhoods:
+        """``nb`` with the local fits' projection of its rows (:attr:`Neighbourhoods.projection`)."""
+        return dataclasses.replace(nb, projection=self._project(nb.on(data), nb.idx, nb.weights))
 
     def fit_weights(self, x, g, idx, level):
         """The local fits' weights ``[N, k]`` (``neighbours.fit_weights``; ``None`` when
@@ -242,7 +253,7 @@ class LazyAgent(Agent):
 
     def run_block(self, state, data: Transitions, aux: Neighbourhoods, n_valid=None):
         data = aux.on(data)
-        state, metrics = self.trainer.run_cycle(state, data, aux.idx, n_valid, aux.weights)
+        state, metrics = self.trainer.run_cycle(state, data, aux.idx, n_valid, aux.weights, aux.projection)
         n = data.r.shape[0] if n_valid is None else n_valid
         valid = (jnp.arange(data.r.shape[0]) < n).astype(jnp.float32)
         count = jnp.maximum(jnp.sum(valid), 1.0)
