@@ -121,6 +121,8 @@ def test_play_data_are_ogbenchs_script_episode_for_episode():
     np.testing.assert_array_equal(data["new_targets"], ref["new_targets"])
     one = play(np.random.default_rng(3), 2, steps, workers=1)
     np.testing.assert_array_equal(one["observations"], data["observations"])
+    two = play(np.random.default_rng(3), 2, 30, processes=2)  # one episode a spawned process
+    np.testing.assert_array_equal(two["actions"], data["actions"].reshape(2, steps, 5)[:, :30].reshape(60, 5))
     term = data["terminals"].reshape(2, steps)
     assert term[:, -1].all() and not term[:, :-1].any()
     assert np.all(np.abs(data["actions"]) <= 1.0)

@@ -45,7 +45,10 @@ from lazyq_jax.types import Transitions
 __all__ = ["CubeCollectConfig", "CubeEvalConfig", "CubeTask", "cube_features", "evaluate_episodes",
            "goal_features", "goal_of", "load_npz", "play", "play_data", "save_npz"]
 
-COLLECT_WORKERS = 2  # threads of the play data (measured: docs/cube.md)
+# How the play data are stepped (docs/cube.md, "Speed"): threads did not help on 2 cores (the IK
+# controller holds the GIL); two spawned processes did, once their start (~5 s) is small.
+COLLECT_PROCESSES = 2
+PROCESSES_FROM_STEPS = 100_000  # fewer env steps: one process
 
 
 def seed_rng(key: jax.Array) -> np.random.Generator:
@@ -79,7 +82,11 @@ def goal_of(goal_obs: np.ndarray, goal_rep: str) -> np.ndarray:
 def _shared_play(episodes: int, steps: int, noise: float, smoothing: float, p_random: float,
                  data_seed: int) -> dict:
     return play(np.random.default_rng(data_seed), episodes, steps, noise, smoothing, p_random,
-                workers=COLLECT_WORKERS, progress=True)
+                processes=_processes(episodes, steps), progress=True)
+
+
+def _processes(episodes: int, steps: int) -> int:
+    return COLLECT_PROCESSES if episodes * steps >= PROCESSES_FROM_STEPS else 1
 
 
 def play_data(key: jax.Array, c: CubeCollectConfig, progress: bool = False) -> dict:
@@ -91,7 +98,7 @@ def play_data(key: jax.Array, c: CubeCollectConfig, progress: bool = False) -> d
         return _shared_play(c.episodes, c.episode_steps, c.noise, c.noise_smoothing,
                             c.p_random_action, c.data_seed)
     return play(seed_rng(key), c.episodes, c.episode_steps, c.noise, c.noise_smoothing,
-                c.p_random_action, workers=COLLECT_WORKERS, progress=progress)
+                c.p_random_action, processes=_processes(c.episodes, c.episode_steps), progress=progress)
 
 
 def evaluate_episodes(acts: Callable, policies, keys: jax.Array, cfg: CubeEvalConfig,

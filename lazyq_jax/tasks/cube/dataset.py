@@ -31,7 +31,9 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import multiprocessing
 import threading
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -43,7 +45,7 @@ from lazyq_jax.tasks.cube.env import ACTION_DIM, OBS_DIM, EpisodeBatch, SeededCu
 from lazyq_jax.tasks.pointmaze.dataset import load_npz as _load_ogbench_npz
 from lazyq_jax.tasks.pointmaze.dataset import save_npz
 
-__all__ = ["load_npz", "make_oracle", "play", "save_npz"]
+__all__ = ["load_npz", "make_oracle", "play", "play_seeded", "save_npz"]
 
 NOISE_SCALE = np.array([0.05, 0.05, 0.05, 0.3, 1.0])  # PlanOracle.compute_plan's per-axis scale
 _GLOBAL_RNG = threading.Lock()
@@ -78,15 +80,33 @@ class _Episode:
 
 def play(rng: np.random.Generator, episodes: int, steps: int = 1001, noise: float = 0.1,
          noise_smoothing: float = 0.5, p_random_action: float = 0.0, workers: int = 1,
-         progress: bool = False) -> dict[str, np.ndarray]:
+         processes: int = 1, progress: bool = False) -> dict[str, np.ndarray]:
     """``episodes`` play episodes of ``steps`` env steps (module docstring), in OGBench's file
     format: ``observations [E * T, 28]``, ``actions [E * T, 5]``, ``qpos [E * T, 21]``, ``qvel
     [E * T, 20]`` (float32), ``terminals [E * T]`` (bool, the last step of each episode); also,
     for statistics, ``successes`` (the target cube within 0.04 m of its target after the step)
-    and ``new_targets`` (the oracle's plan ended at that step and a new target was set)."""
+    and ``new_targets`` (the oracle's plan ended at that step and a new target was set).
+    Each episode's two seeds (env, oracle) are drawn from ``rng`` first; the episodes are then
+    stepped by ``workers`` threads in each of ``processes`` processes (spawned, a contiguous
+    share of the episodes each): the data do not depend on either."""
     if not (isinstance(episodes, int) and episodes >= 1 and isinstance(steps, int) and steps >= 2):
         raise ValueError(f"play needs episodes >= 1 and steps >= 2, got {episodes}, {steps}")
+    if not (isinstance(processes, int) and processes >= 1):
+        raise ValueError(f"play needs processes >= 1, got {processes!r}")
     seeds = rng.integers(0, 2**31 - 1, size=(episodes, 2))
+    args = (steps, noise, noise_smoothing, p_random_action, workers)
+    if processes == 1 or episodes == 1:
+        return play_seeded(seeds, *args, progress=progress)
+    chunks = [c for c in np.array_split(seeds, processes) if len(c)]
+    with ProcessPoolExecutor(len(chunks), mp_context=multiprocessing.get_context("spawn")) as pool:
+        parts = list(pool.map(play_seeded, chunks, *([a] * len(chunks) for a in args)))
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def play_seeded(seeds: np.ndarray, steps: int, noise: float, noise_smoothing: float,
+                p_random_action: float, workers: int = 1, progress: bool = False) -> dict[str, np.ndarray]:
+    """:func:`play`'s episodes for the seeds ``[E, 2]`` (env reset seed, oracle random state)."""
+    episodes = len(seeds)
     batch = EpisodeBatch(episodes, "data_collection", workers=workers)
     try:
         obs0, infos = batch.reset([int(s) for s in seeds[:, 0]])
