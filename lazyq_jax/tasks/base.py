@@ -175,6 +175,9 @@ class Task:
       data_version: the version of what :meth:`collect` returns; a run directory's cached
         dataset of another version is collected anew (e.g. rows that gained
         ``Transitions.traj_last``).
+      published: a public benchmark's published numbers for this task, ``method -> (mean %,
+        std % or None)`` of its first rate, from ``published_source`` at ``published_budget``
+        (gradient steps, batch size); empty where there are none (``report --suite``).
     """
 
     name: str = "task"
@@ -186,6 +189,9 @@ class Task:
     directions: bool = False
     online: bool = False
     data_version: int = 1
+    published: dict[str, tuple[float, float | None]] = {}
+    published_source: str = ""
+    published_budget: tuple[int, int] | None = None
 
     # --- configuration
     def check(self, config: Config) -> None:

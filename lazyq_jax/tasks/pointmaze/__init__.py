@@ -1,5 +1,7 @@
-"""OGBench's pointmaze (Park et al. 2024; ``pointmaze-medium-navigate-v0``, ``large`` and ``giant`` as
-``collect.maze``): a public benchmark nobody here wrote.
+"""OGBench's pointmaze (Park et al. 2024): every ``pointmaze-{medium,large,giant,teleport}-{navigate,
+stitch}-v0`` dataset, a public benchmark nobody here wrote.  The task ``pointmaze`` is
+``pointmaze-medium-navigate``; each dataset is also a task of its own name (OGBench's id, with or
+without ``-v0``), whose presets hold that dataset's recipe and discount.
 
 State: the point's ``(x, y)`` (``d_s = 2``); goal: a position ``g [2]`` (vector goals); action: the
 box ``[-1, 1]^2`` (``T(s, a) = s + 0.2 a`` away from walls); reward ``success - 1`` with success
@@ -28,17 +30,20 @@ from lazyq_jax.keys import purpose_key
 from lazyq_jax.tasks.base import (CORRECT, NOT_PUSHED, Evaluation, Protocol, Task, make_protocol,
                                   run_protocol, seed_acts)
 from lazyq_jax.tasks.pointmaze import plots
-from lazyq_jax.tasks.pointmaze.config import (PointMazeCollectConfig, PointMazeEvalConfig, check,
-                                              presets)
-from lazyq_jax.tasks.pointmaze.dataset import (load_npz, navigate, relabel, save_npz,
+from lazyq_jax.tasks.pointmaze.config import (DATASETS, PointMazeCollectConfig, PointMazeEvalConfig,
+                                              check, dataset_id, discount, presets)
+from lazyq_jax.tasks.pointmaze.dataset import (load_npz, navigate, relabel, save_npz, stitch,
                                                trajectory_transitions)
 from lazyq_jax.tasks.pointmaze.maze import GOAL_TOL, NOISE, Maze, get_maze
+from lazyq_jax.tasks.pointmaze.published import OGBENCH, OGBENCH_BUDGET, PUBLISHED
 from lazyq_jax.types import Transitions
 
-__all__ = ["Maze", "PointMazeCollectConfig", "PointMazeEvalConfig", "PointMazeTask", "get_maze",
-           "load_npz", "navigate", "relabel", "save_npz", "trajectory_transitions"]
+__all__ = ["DATASETS", "Maze", "PointMazeCollectConfig", "PointMazeEvalConfig", "PointMazeTask",
+           "get_maze", "load_npz", "navigate", "relabel", "save_npz", "stitch", "trajectory_transitions"]
 
 N_TASKS = 5
+#: OGBench's agents that take its per-dataset discount and stitch actor goals (all but GCBC)
+OGBENCH_VALUE_AGENTS = ("gcivl", "gciql", "qrl", "crl", "hiql")
 
 
 def seed_rng(key: jax.Array) -> np.random.Generator:
@@ -59,8 +64,9 @@ def collect_steps(key: jax.Array, collect: PointMazeCollectConfig, progress: boo
             raise DatasetError(f"{collect.dataset}: observations lie outside the free cells of the "
                                f"{collect.maze} maze; is it another maze's file? (collect.maze)")
         return trajectory_transitions(raw)
-    raw = navigate(get_maze(collect.maze), seed_rng(key), collect.episodes, collect.episode_steps,
-                   collect.noise, progress=progress)
+    recipe = navigate if collect.recipe == "navigate" else stitch
+    raw = recipe(get_maze(collect.maze), seed_rng(key), collect.episodes, collect.episode_steps,
+                 collect.noise, progress=progress)
     return trajectory_transitions(raw)
 
 
@@ -89,6 +95,28 @@ def native_step(maze: str) -> Callable:
     return lambda q, a: host_call(get_maze(maze).step, q, a)
 
 
+def teleport_step(maze: str) -> Callable:
+    """``step(state, actions) -> state`` of a maze with teleporters for jitted code, ``state =
+    (observed qpos [B, 2], teleport pending [B], raw keys [B, 2])``: the point starts from
+    an outbound teleporter (``floor(3 u)``, ``u`` from the episode's key) where a move is
+    pending, steps natively, and the new step's observation is where it ends
+    (:class:`~lazyq_jax.tasks.pointmaze.maze.Maze`)."""
+    m, step = get_maze(maze), native_step(maze)
+
+    def go(state, a):
+        q, pending, key = state
+        key, k_u = jnp.moveaxis(jax.vmap(jax.random.split)(key), 1, 0)
+        u = jax.vmap(jax.random.uniform)(k_u)
+        start = host_call(lambda q_, p_, u_: m.teleport(q_, p_[..., 0] > 0.5, u_[..., 0]), q,
+                          jnp.broadcast_to(pending[..., None], q.shape).astype(jnp.float32), jnp.broadcast_to(u[..., None], q.shape))
+        new_q = step(start, a)
+        pending = host_call(lambda q_: np.broadcast_to(m.teleport_pending(q_)[..., None], q_.shape),
+                            new_q)[..., 0] > 0.5
+        return new_q, pending, key
+
+    return go
+
+
 def task_protocol(maze: str, cfg: PointMazeEvalConfig) -> Protocol:
     """OGBench's evaluation as a :class:`~lazyq_jax.tasks.base.Protocol`: ``episodes_per_task``
     episodes of each of ``cfg.tasks`` side by side; ``ctx``: goals ``[B, 2]`` and task numbers."""
@@ -96,24 +124,30 @@ def task_protocol(maze: str, cfg: PointMazeEvalConfig) -> Protocol:
     task_ids = np.repeat(np.asarray(cfg.tasks), cfg.episodes_per_task)
     init = jnp.asarray(m.ij_to_xy(np.asarray([m.tasks[t - 1][0] for t in task_ids])), jnp.float32)
     goal = jnp.asarray(m.ij_to_xy(np.asarray([m.tasks[t - 1][1] for t in task_ids])), jnp.float32)
-    step_native = native_step(maze)
     b = len(task_ids)
+    # The state: the point's position, or (position, teleport pending, key) with teleporters.
+    teleports = m.has_teleports
+    step_native = teleport_step(maze) if teleports else native_step(maze)
+    position = (lambda q: q[0]) if teleports else (lambda q: q)
 
     def start(key):
         k_s, k_g = jax.random.split(key)
         s = init + jax.random.uniform(k_s, init.shape, jnp.float32, -NOISE, NOISE)
         g = goal + jax.random.uniform(k_g, goal.shape, jnp.float32, -NOISE, NOISE)
+        if teleports:  # raw uint32 keys [B, 2], one per episode
+            s = (s, jnp.zeros((b,), bool), jax.random.split(jax.random.fold_in(key, 2), b))
         return s, {"goal": g, "task": jnp.asarray(task_ids, jnp.int32)}, jnp.zeros((b,), bool)
 
     def step(q, a):
         return step_native(q, jnp.clip(a, -1.0, 1.0)), None
 
     def outcome_of(info, g, new_q, ctx):
-        reached = jnp.linalg.norm(new_q - g, axis=-1) <= GOAL_TOL
+        reached = jnp.linalg.norm(position(new_q) - g, axis=-1) <= GOAL_TOL
         return jnp.where(reached, CORRECT, NOT_PUSHED), reached
 
     return make_protocol(start, step, goal_of=lambda q, ctx: ctx["goal"], outcome_of=outcome_of,
-                         observe=lambda q: q, record=lambda q: (q, None, None), steps=cfg.max_steps)
+                         observe=position, record=lambda q: (position(q), None, None),
+                         steps=cfg.max_steps)
 
 
 @functools.lru_cache(maxsize=8)
@@ -139,18 +173,24 @@ def summarize(rollouts, cfg: PointMazeEvalConfig) -> dict:
 
 
 class PointMazeTask(Task):
-    """``pointmaze`` (see the module docstring)."""
+    """One of OGBench's pointmaze datasets (see the module docstring): ``maze`` and ``recipe``
+    choose the presets' data; ``name`` is the registry's."""
 
-    name = "pointmaze"
-    summary = "OGBench's pointmaze-medium-navigate: a point in a maze, vector goals, box actions"
     collect_config = PointMazeCollectConfig
     eval_config = PointMazeEvalConfig
     data_version = 2  # the rows carry their trajectories (Transitions.traj_last)
     rates = (("success_rate", "success (5 tasks)"),
              *((f"task{i}", f"task {i}") for i in range(1, N_TASKS + 1)))
 
-    def __init__(self):
-        self.presets = presets()
+    def __init__(self, maze: str = "medium", recipe: str = "navigate", name: str | None = None):
+        self.maze, self.recipe = maze, recipe
+        self.dataset = dataset_id(maze, recipe)
+        self.name = name or self.dataset
+        self.summary = (f"OGBench's {self.dataset}-v0: a point in a maze, vector goals, box actions"
+                        + ("" if recipe == "navigate" else "; short trajectories to stitch"))
+        self.presets = presets(maze, recipe, self.name)
+        self.published = PUBLISHED[self.dataset]
+        self.published_source, self.published_budget = OGBENCH, OGBENCH_BUDGET
 
     def check(self, config: Config) -> None:
         super().check(config)
@@ -160,9 +200,17 @@ class PointMazeTask(Task):
         return Problem(action_length=1.0, action_set="box", state_scale=1.0, state_goal_reward=True)
 
     def method_defaults(self, name: str) -> dict:
-        """OGBench's published network and batch sizes (3 x 512 hidden, batch 1024), for every
-        baseline on this task (OGBench's own and the project's other baselines alike)."""
-        return {"width": 512, "depth": 4, "batch_size": 1024}
+        """OGBench's published network and batch sizes (3 x 512 hidden, batch 1024) for every
+        baseline (OGBench's own and the project's other baselines alike), and OGBench's
+        per-dataset flags (``impls/hyperparameters.sh``) for its agents but GCBC: the maze's
+        discount (giant 0.995) and, on stitch data, actor goals half random
+        (``actor_p_randomgoal=0.5``); the alphas of the point mazes are the agents' defaults."""
+        fields = {"width": 512, "depth": 4, "batch_size": 1024}
+        if name in OGBENCH_VALUE_AGENTS:
+            fields["gamma"] = discount(self.maze)
+            if self.recipe == "stitch":
+                fields["actor_p_randomgoal"] = 0.5
+        return fields
 
     def collect(self, key, config: Config, *, mesh: Mesh | None = None, progress: bool = True
                 ) -> Transitions:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 
 from lazyq_jax.config import Config, NeighbourConfig, TrainConfig, _check, _counts, _positive
+from lazyq_jax.tasks.pointmaze.dataset import RECIPES
 from lazyq_jax.tasks.pointmaze.maze import MAZES
 
 
@@ -13,9 +14,11 @@ from lazyq_jax.tasks.pointmaze.maze import MAZES
 class PointMazeCollectConfig:
     """The dataset of one seed (:mod:`lazyq_jax.tasks.pointmaze.dataset`).
 
-    ``maze``: OGBench's ``medium`` (default), ``large`` or ``giant``.  ``episodes`` x
-    ``episode_steps`` env steps of the navigate recipe with action noise ``noise`` (OGBench's
-    ``pointmaze-*-navigate-v0``: 1000 x 1001, 0.5; giant: 500 x 2001), or, with ``dataset``
+    ``maze``: OGBench's ``medium`` (default), ``large``, ``giant`` or ``teleport``.
+    ``recipe``: ``navigate`` or ``stitch`` (:mod:`~lazyq_jax.tasks.pointmaze.dataset`).
+    ``episodes`` x ``episode_steps`` env steps of the recipe with action noise ``noise``
+    (OGBench's ``pointmaze-*-navigate-v0``: 1000 x 1001, giant 500 x 2001;
+    ``pointmaze-*-stitch-v0``: 5000 x 201; noise 0.5: :func:`dataset_collect`), or, with ``dataset``
     set, the trajectories of that OGBench ``.npz`` file instead (the same file for every seed;
     the seeds then differ in goals and training only).  ``goals_per_transition`` relabelled
     copies of every transition, goals drawn as OGBench's value goals: the current state with
@@ -24,6 +27,7 @@ class PointMazeCollectConfig:
     """
 
     maze: str = "medium"
+    recipe: str = "navigate"
     episodes: int = 1000
     episode_steps: int = 1001
     noise: float = 0.5
@@ -35,6 +39,8 @@ class PointMazeCollectConfig:
 
     def __post_init__(self) -> None:
         _check(self.maze in MAZES, f"PointMazeCollectConfig.maze must be one of {MAZES}, got {self.maze!r}")
+        _check(self.recipe in RECIPES,
+               f"PointMazeCollectConfig.recipe must be one of {RECIPES}, got {self.recipe!r}")
         _counts(self, "episodes", "goals_per_transition")
         _counts(self, "episode_steps", minimum=2)
         _positive(self, "noise")
@@ -102,13 +108,42 @@ _SMOKE_TRAIN = TrainConfig(gamma=0.99, cycles=3, epochs=1, batch_size=256, targe
                            target_steps=10)
 
 
-def presets() -> dict[str, Config]:
-    """``paper`` (the CPU default: OGBench's medium navigate data, 300 one-epoch cycles, the
-    full evaluation) and ``smoke`` (a tiny end-to-end run)."""
-    paper = Config(task="pointmaze", collect=PointMazeCollectConfig(), eval=PointMazeEvalConfig(),
-                   neighbours=_NEIGHBOURS, train=_TRAIN)
+def dataset_id(maze: str, recipe: str) -> str:
+    """OGBench's dataset name without its version: ``pointmaze-{maze}-{recipe}``."""
+    return f"pointmaze-{maze}-{recipe}"
+
+
+DATASETS = tuple(dataset_id(m, r) for r in RECIPES for m in MAZES)
+
+
+def discount(maze: str) -> float:
+    """OGBench's discount for a maze's datasets: 0.995 in giant (``impls/hyperparameters.sh``:
+    every method but GCBC), else 0.99.  A setting of the dataset, so lazy Q takes it too."""
+    return 0.995 if maze == "giant" else 0.99
+
+
+def dataset_collect(maze: str, recipe: str) -> PointMazeCollectConfig:
+    """OGBench's recipe for ``pointmaze-{maze}-{recipe}-v0`` (``data_gen_scripts/commands.sh``):
+    navigate 1000 episodes x 1001 steps (giant 500 x 2001), stitch 5000 x 201; noise 0.5; the
+    value goals' discount the maze's (:func:`discount`)."""
+    if recipe == "stitch":
+        episodes, steps = 5000, 201
+    else:
+        episodes, steps = (500, 2001) if maze == "giant" else (1000, 1001)
+    return PointMazeCollectConfig(maze=maze, recipe=recipe, episodes=episodes, episode_steps=steps,
+                                  discount=discount(maze))
+
+
+def presets(maze: str = "medium", recipe: str = "navigate", task: str = "pointmaze") -> dict[str, Config]:
+    """``paper`` (the CPU default: OGBench's data of ``pointmaze-{maze}-{recipe}``, 300
+    one-epoch cycles, the full evaluation; the same lazy Q settings for every dataset but the
+    discount, which is the dataset's) and ``smoke`` (a tiny end-to-end run)."""
+    gamma = discount(maze)
+    paper = Config(task=task, collect=dataset_collect(maze, recipe), eval=PointMazeEvalConfig(),
+                   neighbours=_NEIGHBOURS, train=dataclasses.replace(_TRAIN, gamma=gamma))
     smoke = dataclasses.replace(
-        paper, collect=PointMazeCollectConfig(episodes=20, episode_steps=101),
-        eval=PointMazeEvalConfig(episodes_per_task=2, max_steps=30), train=_SMOKE_TRAIN,
+        paper, collect=dataclasses.replace(paper.collect, episodes=20, episode_steps=101),
+        eval=PointMazeEvalConfig(episodes_per_task=2, max_steps=30),
+        train=dataclasses.replace(_SMOKE_TRAIN, gamma=gamma),
         neighbours=dataclasses.replace(_NEIGHBOURS, k=8, radius_s=1.0, radius_g=2.0))
     return {"paper": paper, "smoke": smoke}

@@ -37,36 +37,83 @@ from lazyq_jax.tasks.pointmaze.maze import GOAL_TOL, Maze
 from lazyq_jax.types import Transitions
 
 NPZ_KEYS = ("observations", "actions", "terminals")
+STITCH_CELLS = 4  # a stitch episode's goal: a cell exactly this many BFS moves from the start
+RECIPES = ("navigate", "stitch")
 
 
 def navigate(maze: Maze, rng: np.random.Generator, episodes: int, steps: int = 1001,
              noise: float = 0.5, progress: bool = False) -> dict[str, np.ndarray]:
-    """``episodes`` navigate episodes of ``steps`` env steps, in OGBench's file format:
-    ``observations, actions, qpos [episodes * steps, 2]`` (float32), ``terminals`` (bool, the
-    last step of each episode); also ``goals`` (the goal being pursued) and ``successes``
-    (reached after the step), for statistics.  OGBench's files also hold ``qvel`` (the
-    velocity left by the previous step's contacts); nothing here reads it, so it is not made."""
+    """``episodes`` navigate episodes of ``steps`` env steps (module docstring), in OGBench's
+    file format (:func:`run_episodes`)."""
     free, vertex = np.asarray(maze.free), np.asarray(maze.vertex)
     xy = maze.noisy(rng, free[rng.integers(len(free), size=episodes)])
     goal = maze.noisy(rng, vertex[rng.integers(len(vertex), size=episodes)])
+    return run_episodes(maze, rng, xy, goal, steps, noise, new_goals=vertex, progress=progress,
+                        desc="navigate data")
+
+
+def cells_at(maze: Maze, steps: int = STITCH_CELLS) -> list[np.ndarray]:
+    """For every free cell (in ``maze.free``'s order), the cells exactly ``steps`` BFS moves
+    away (``[m, 2]``, possibly none)."""
+    return [np.argwhere(maze.dist[i, j] == steps) for i, j in maze.free]
+
+
+def stitch(maze: Maze, rng: np.random.Generator, episodes: int, steps: int = 201,
+           noise: float = 0.5, progress: bool = False) -> dict[str, np.ndarray]:
+    """``episodes`` stitch episodes of ``steps`` env steps (module docstring): the start
+    uniform over the free cells, the goal uniform over the cells exactly 4 BFS moves from it
+    (the start's own cell where there are none), both with the +-1 noise; the goal is kept
+    after it is reached.  OGBench's file format (:func:`run_episodes`)."""
+    free = np.asarray(maze.free)
+    around = cells_at(maze)
+    start = rng.integers(len(free), size=episodes)
+    goal_cells = np.array([around[c][rng.integers(len(around[c]))] if len(around[c]) else free[c]
+                           for c in start]).reshape(episodes, 2)
+    xy = maze.noisy(rng, free[start])
+    goal = maze.noisy(rng, goal_cells)
+    return run_episodes(maze, rng, xy, goal, steps, noise, new_goals=None, progress=progress,
+                        desc="stitch data")
+
+
+def run_episodes(maze: Maze, rng: np.random.Generator, xy: np.ndarray, goal: np.ndarray,
+                 steps: int, noise: float, new_goals: np.ndarray | None, progress: bool = False,
+                 desc: str = "episodes") -> dict[str, np.ndarray]:
+    """Episodes of ``steps`` env steps from ``xy [E, 2]`` towards ``goal [E, 2]``, side by
+    side (one batched native step a step): action = the unit direction to the oracle subgoal
+    plus ``N(0, noise)`` per component, clipped to ``[-1, 1]``; with ``new_goals`` (cells) a new
+    noisy goal among them whenever the point is within 1.0 of the goal (navigate), else the
+    goal stays (stitch).  In a maze with teleporters the observation after a step is the
+    position before any teleport, the next step starts after it (:class:`Maze`), and the
+    oracle reads the position the point is at, as OGBench's script does.
+
+    Returns OGBench's file format: ``observations, actions, qpos [E * steps, 2]`` (float32;
+    ``qpos``: where each step started, which differs from the observation after a
+    teleport), ``terminals`` (bool, the last step of each episode); also ``goals`` (the goal
+    being pursued) and ``successes`` (reached after the step), for statistics.  OGBench's
+    files also hold ``qvel`` (the velocity left by the previous step's contacts); nothing
+    here reads it, so it is not made."""
+    episodes = len(xy)
+    seen = xy  # the observation; xy: where the point is (they differ after a teleport)
     obs = np.zeros((episodes, steps, 2))
-    acts, goals = np.zeros_like(obs), np.zeros_like(obs)
+    acts, goals, qpos = np.zeros_like(obs), np.zeros_like(obs), np.zeros_like(obs)
     successes = np.zeros((episodes, steps), bool)
-    for t in tqdm(range(steps), desc="navigate data", disable=not progress, leave=False):
+    for t in tqdm(range(steps), desc=desc, disable=not progress, leave=False):
         a = np.clip(maze.subgoal_direction(xy, goal) + rng.normal(0.0, noise, xy.shape), -1.0, 1.0)
-        obs[:, t], acts[:, t], goals[:, t] = xy, a, goal
-        xy = maze.step(xy, a)
+        obs[:, t], acts[:, t], goals[:, t], qpos[:, t] = seen, a, goal, xy
+        seen = xy = maze.step(xy, a)
         reached = np.linalg.norm(xy - goal, axis=-1) <= GOAL_TOL
         successes[:, t] = reached
-        if reached.any():
-            cells = vertex[rng.integers(len(vertex), size=int(reached.sum()))]
+        if new_goals is not None and reached.any():
+            cells = new_goals[rng.integers(len(new_goals), size=int(reached.sum()))]
             goal[reached] = maze.noisy(rng, cells)
+        if maze.has_teleports:
+            xy = maze.teleport(xy, maze.teleport_pending(xy), rng.random(episodes))
     terminals = np.zeros((episodes, steps), bool)
     terminals[:, -1] = True
     flat = lambda x: x.reshape(episodes * steps, *x.shape[2:])
     f32 = lambda x: flat(x).astype(np.float32)
     return {"observations": f32(obs), "actions": f32(acts), "terminals": flat(terminals),
-            "qpos": f32(obs), "goals": f32(goals), "successes": flat(successes)}
+            "qpos": f32(qpos), "goals": f32(goals), "successes": flat(successes)}
 
 
 def save_npz(path: str | Path, dataset: dict[str, np.ndarray]) -> Path:

@@ -13,6 +13,13 @@ agreement is only guaranteed to the solver's tolerance).
 Measured here (2 cores): ~21,000 env steps/s for a batch of 250 or 1000 (MJX matched the env to
 2e-6 in float32 but ran ~900/s for a batch of 1024 on these cores: shared/DESIGN.md §8).
 
+Teleport (OGBench's ``pointmaze-teleport``): after a step that ends within 1.5 of an inbound
+teleporter's centre the point is moved to one of the three outbound ones, uniformly at random
+(``MazeEnv.step``).  The observation returned by that step is the position *before* the move
+(success is also checked there); the next step starts from the outbound teleporter.  So a
+rollout carries the observed position and whether a move is pending (:meth:`Maze.teleport`).
+The oracle's BFS ignores the teleporters, as OGBench's does.
+
 Cells ``(i, j)``: row ``i`` (y), column ``j`` (x); ``xy_to_ij`` and ``ij_to_xy`` as OGBench's.
 The oracle subgoal (``get_oracle_subgoal``): the neighbouring free cell of least BFS distance to
 the goal's cell, strictly less than the current cell's (else the current cell), neighbours tried in
@@ -30,7 +37,7 @@ import numpy as np
 import ogbench
 from mujoco import rollout
 
-MAZES = ("medium", "large", "giant")
+MAZES = ("medium", "large", "giant", "teleport")
 MAZE_UNIT = 4.0
 OFFSET = 4.0  # ogbench: _offset_x = _offset_y = 4
 STEP_SCALE = 0.2  # qpos += 0.2 a
@@ -38,6 +45,7 @@ FRAME_SKIP = 5
 GOAL_TOL = 1.0  # success: |xy - goal| <= 1 (point mazes)
 NOISE = 1.0  # start / goal noise: uniform +-1 per coordinate (noise 1 x maze_unit / 4)
 _NEIGHBOURS = ((-1, 0), (0, -1), (1, 0), (0, 1))
+TELEPORT_REACH = 1.5  # a step ending within 1.5 x teleport_radius (1) of an inbound centre teleports
 
 
 def env_name(maze: str) -> str:
@@ -59,6 +67,12 @@ class Maze:
         self.model: mujoco.MjModel = u.model
         self.map = np.asarray(u.maze_map, np.int64)
         self.tasks = [(tuple(t["init_ij"]), tuple(t["goal_ij"])) for t in u.task_infos]
+        info = u._teleport_info  # None but in the teleport maze
+        self.teleport_in = (np.zeros((0, 2)) if info is None else
+                            np.asarray(info["teleport_in_xys"], np.float64))
+        self.teleport_out = (np.zeros((0, 2)) if info is None else
+                             np.asarray(info["teleport_out_xys"], np.float64))
+        self.teleport_reach = 0.0 if info is None else TELEPORT_REACH * info["teleport_radius"]
         env.close()
         rows, cols = self.map.shape
         self.free = [(i, j) for i in range(rows) for j in range(cols) if self.map[i, j] == 0]
@@ -148,6 +162,31 @@ class Maze:
         """Cell centres with OGBench's noise: uniform ``+-1`` per coordinate (``[B, 2]``)."""
         xy = self.ij_to_xy(ij)
         return xy + rng.uniform(-NOISE, NOISE, xy.shape)
+
+    # --- teleporters
+    @property
+    def has_teleports(self) -> bool:
+        return len(self.teleport_in) > 0
+
+    def teleport_pending(self, xy) -> np.ndarray:
+        """Whether a step that ended at ``xy [..., 2]`` teleports the point (OGBench's check
+        after the physics step; always False in mazes without teleporters)."""
+        xy = np.asarray(xy, np.float64)
+        if not self.has_teleports:
+            return np.zeros(xy.shape[:-1], bool)
+        d = np.linalg.norm(xy[..., None, :] - self.teleport_in, axis=-1)
+        return (d <= self.teleport_reach).any(-1)
+
+    def teleport(self, xy, pending, u) -> np.ndarray:
+        """Where the next step starts: ``xy`` itself, or where ``pending`` the outbound
+        teleporter ``floor(3 u)`` (``u [...]`` uniform in ``[0, 1)``: OGBench's
+        ``np.random.randint(3)``)."""
+        xy = np.asarray(xy, np.float64)
+        if not self.has_teleports:
+            return xy
+        n = len(self.teleport_out)
+        out = self.teleport_out[np.minimum((np.asarray(u) * n).astype(np.int64), n - 1)]
+        return np.where(np.asarray(pending, bool)[..., None], out, xy)
 
     # --- physics
     def step(self, qpos: np.ndarray, action: np.ndarray) -> np.ndarray:
