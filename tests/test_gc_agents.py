@@ -10,12 +10,15 @@
   current state is within ``TOL`` of the goal) and goals drawn as OGBench's value goals
   (current state 0.2, nearby 0.5, random 0.3): GCIVL and GCIQL learn to move towards the
   goal from uniformly random behaviour, GCBC imitates a noisy expert;
+* ``actor_p_randomgoal`` (OGBench's stitch datasets' actor goals) in GCIVL's, GCIQL's, QRL's
+  and CRL's actor minibatches, and its validation;
 * config validation, the registry, and ``jax.jit(agent.train)`` of the defaults.
 """
 
 import dataclasses
 import math
 import os
+import re
 from concurrent.futures import ThreadPoolExecutor
 
 import jax
@@ -24,7 +27,7 @@ import numpy as np
 import pytest
 
 from lazyq_jax import agents
-from lazyq_jax.agents import gcbc, gciql, gcivl, reference
+from lazyq_jax.agents import crl, gcbc, gciql, gcivl, qrl, reference
 from lazyq_jax.agents.base import Problem, Spec
 from lazyq_jax.config import ConfigError
 from lazyq_jax.types import Transitions
@@ -455,6 +458,57 @@ def test_defaults_are_ogbenchs():
 def test_config_errors_name_the_field(cls, field, value):
     with pytest.raises(ConfigError, match=rf"{cls.__name__}\.{field} must be"):
         cls(**{field: value})
+
+
+ACTOR_GOAL_CONFIGS = [gcivl.GCIVLConfig, gciql.GCIQLConfig, qrl.QRLConfig, crl.CRLConfig]
+
+
+@pytest.mark.parametrize("cls", ACTOR_GOAL_CONFIGS)
+def test_actor_p_randomgoal_is_validated(cls):
+    """In ``[0, 1]`` (OGBench's default 0); above 0 not with the rows' own goals."""
+    assert cls().actor_p_randomgoal == 0.0
+    assert cls(actor_p_randomgoal=0.5).actor_p_randomgoal == 0.5
+    name = cls.__name__
+    for bad in (-0.1, 1.5, float("nan"), "half"):
+        with pytest.raises(ConfigError, match=rf"{name}\.actor_p_randomgoal must be a finite "
+                                              rf"number in \[0, 1\], got {re.escape(repr(bad))}"):
+            cls(actor_p_randomgoal=bad)
+    with pytest.raises(ConfigError, match=rf"{name}\.actor_p_randomgoal=0\.5 draws random actor "
+                                          r"goals .* goals='rows'"):
+        cls(actor_p_randomgoal=0.5, goals="rows")
+    assert cls(actor_p_randomgoal=0.0, goals="rows").goals == "rows"
+
+
+@pytest.mark.parametrize("name", ["gcivl", "gciql", "qrl", "crl"])
+def test_stitch_actor_goals_in_the_actor_minibatch(name):
+    """``actor_p_randomgoal = 0.5`` (OGBench's stitch setting): the actor minibatch's goals are
+    a random state for about half the rows (outside the row's future with probability
+    ``0.5 (1 - E[last - idx + 1] / n)``, 5 binomial sigmas), the value minibatch's goals those
+    of the default; with 0 every actor goal lies in the row's future."""
+    n_traj, length, b = 20, 30, 20_000
+    n = n_traj * length
+    idx = np.arange(n)
+    s = np.stack([idx, idx // length], -1).astype(np.float32)
+    last = (idx // length + 1) * length - 1
+    data = Transitions(s=jnp.asarray(s), a=jnp.zeros((n, 2)), s_next=jnp.asarray(s + 1),
+                       r=-jnp.ones(n), g=jnp.asarray(s), done=jnp.zeros(n, bool),
+                       traj_last=jnp.asarray(last, jnp.int32))
+    problem = Problem(action_length=1.0, action_set="box")
+    rows = jax.random.randint(jax.random.PRNGKey(0), (b,), 0, n)
+    r = np.asarray(rows)
+
+    def batch(p):
+        cfg = agents.config_class(name)(**TINY, actor_p_randomgoal=p)
+        agent = agents.make(name, cfg, problem=problem)
+        value, actor = agent.batch(data, rows, jax.random.PRNGKey(1), jnp.int32(n))[:2]
+        return np.asarray(value.g[:, 0]).astype(int), np.asarray(actor.g[:, 0]).astype(int)
+
+    (v0, a0), (v5, a5) = batch(0.0), batch(0.5)
+    np.testing.assert_array_equal(v5, v0)
+    assert ((a0 >= r) & (a0 <= last[r])).all()
+    outside = (a5 < r) | (a5 > last[r])
+    expect = 0.5 * (1 - np.mean(last[r] - r + 1) / n)
+    assert abs(outside.mean() - expect) <= 5 * np.sqrt(expect * (1 - expect) / b)
 
 
 def test_registry():

@@ -12,8 +12,11 @@ from lazyq_jax.agents.goals import (
     ACTOR_GOALS,
     VALUE_GOALS,
     GoalMix,
+    actor_goals,
     goal_batches,
+    minibatches,
     sample_goal_rows,
+    sample_goal_rows_and_random,
     uses_trajectories,
 )
 from lazyq_jax.config import ConfigError, NeighbourConfig, TrainConfig
@@ -65,6 +68,125 @@ def test_goal_rows_follow_gcdataset(mix):
     else:  # uniform between the next row and the last: the mean fraction of the way is 1/2
         frac = (off - 1) / np.maximum((final - idx)[traj_rows] - 1, 1)
         assert abs(frac.mean() - 0.5) < 0.01
+
+
+def ogbench_sample_goals(idxs, terminal_locs, p_curgoal, p_trajgoal, p_randomgoal, geom_sample,
+                         discount, random_goal_idxs, offsets, distances, u_traj, u_cur):
+    """OGBench's ``GCDataset.sample_goals`` (``impls/utils/datasets.py``) line for line, its
+    ``np.random`` draws given (``random_goal_idxs``: ``get_random_idxs``; ``offsets``: the
+    geometric ones; ``distances``, ``u_traj``, ``u_cur``: its three ``np.random.rand``), and
+    the uniform offsets in float32 (our draws' precision; OGBench's are float64)."""
+    assert np.isclose(p_curgoal + p_trajgoal + p_randomgoal, 1.0)
+    final_state_idxs = terminal_locs[np.searchsorted(terminal_locs, idxs)]
+    if geom_sample:
+        traj_goal_idxs = np.minimum(idxs + offsets, final_state_idxs)
+    else:
+        f32 = np.float32
+        traj_goal_idxs = np.round(
+            np.minimum(idxs + 1, final_state_idxs).astype(f32) * distances
+            + final_state_idxs.astype(f32) * (f32(1) - distances)
+        ).astype(int)
+    if p_curgoal == 1.0:
+        goal_idxs = idxs
+    else:
+        goal_idxs = np.where(u_traj < p_trajgoal / (1.0 - p_curgoal), traj_goal_idxs, random_goal_idxs)
+        goal_idxs = np.where(u_cur < p_curgoal, idxs, goal_idxs)
+    return goal_idxs
+
+
+def ogbench_draws(key, shape, n, discount):
+    """The draws :func:`sample_goal_rows` makes from ``key`` (its four keys), for
+    :func:`ogbench_sample_goals`."""
+    k_rand, k_off, k_traj, k_cur = jax.random.split(key, 4)
+    return {"random_goal_idxs": np.asarray(jax.random.randint(k_rand, shape, 0, n)),
+            "offsets": np.asarray(jax.random.geometric(k_off, 1.0 - discount, shape, dtype=jnp.int32)),
+            "distances": np.asarray(jax.random.uniform(k_off, shape)),
+            "u_traj": np.asarray(jax.random.uniform(k_traj, shape)),
+            "u_cur": np.asarray(jax.random.uniform(k_cur, shape))}
+
+
+def test_actor_goals_are_ogbenchs_actor_mixture():
+    """``actor_goals(p)``: OGBench's ``actor_p_curgoal = 0``, ``actor_p_trajgoal = 1 - p``,
+    ``actor_p_randomgoal = p``, uniform; 0 is the default mixture exactly."""
+    assert actor_goals(0.0) == ACTOR_GOALS
+    assert actor_goals(0.0).p_traj == 1.0 and actor_goals(0.0).p_cur == 0.0
+    assert actor_goals(0.5) == GoalMix(p_cur=0.0, p_traj=0.5, geom=False)
+    assert actor_goals(1.0) == GoalMix(p_cur=0.0, p_traj=0.0, geom=False)
+
+
+@pytest.mark.parametrize("mix, p_random", [(actor_goals(0.5), 0.5), (actor_goals(0.0), 0.0),
+                                           (VALUE_GOALS, 0.3), (GoalMix(0.3, 0.3, False), 0.4)])
+def test_goal_rows_equal_ogbench_sample_goals_given_its_draws(mix, p_random):
+    """OGBench's ``sample_goals`` (:func:`ogbench_sample_goals`) fed the draws our
+    :func:`sample_goal_rows` makes gives its goals exactly (the stitch actor goals
+    ``(p_cur, p_traj, p_random) = (0, 0.5, 0.5)`` among them); the random flag marks the rows
+    that took OGBench's ``random_goal_idxs``."""
+    lengths = [7, 12, 5]  # three hand-made trajectories
+    last = np.repeat(np.cumsum(lengths) - 1, lengths)
+    n = len(last)
+    terminal_locs = np.cumsum(lengths) - 1
+    idx = jax.random.randint(jax.random.PRNGKey(4), (4000,), 0, n)
+    key, discount = jax.random.PRNGKey(5), 0.9
+    goal, random = sample_goal_rows_and_random(key, idx, jnp.asarray(last, jnp.int32), jnp.int32(n),
+                                               mix, discount)
+    draws = ogbench_draws(key, idx.shape, n, discount)
+    want = ogbench_sample_goals(np.asarray(idx), terminal_locs, mix.p_cur, mix.p_traj, p_random,
+                                mix.geom, discount, **draws)
+    np.testing.assert_array_equal(np.asarray(goal), want)
+    np.testing.assert_array_equal(np.asarray(sample_goal_rows(key, idx, jnp.asarray(last, jnp.int32),
+                                                              jnp.int32(n), mix, discount)), want)
+    took_random = ~(draws["u_cur"] < mix.p_cur) & ~(draws["u_traj"] < mix.p_traj / (1 - mix.p_cur))
+    np.testing.assert_array_equal(np.asarray(random), took_random)
+    np.testing.assert_array_equal(want[took_random], draws["random_goal_idxs"][took_random])
+
+
+def test_stitch_actor_goals_frequencies():
+    """Actor goals with ``actor_p_randomgoal = 0.5``: half the rows a random row (uniform over
+    all rows), half a later row of their trajectory; the share of goals in the row's own
+    future ``[idx, last]`` is ``0.5 + 0.5 E[(last - idx + 1) / n]``, as for OGBench's
+    ``sample_goals`` with NumPy's generator on the same rows (5 binomial sigmas of 200,000)."""
+    data, last = trajectories()
+    n, b, p = len(last), 200_000, 0.5
+    idx = jax.random.randint(jax.random.PRNGKey(1), (b,), 0, n)
+    goal, random = sample_goal_rows_and_random(jax.random.PRNGKey(2), idx, data.traj_last,
+                                               jnp.int32(n), actor_goals(p), 0.99)
+    goal, random, idx = np.asarray(goal), np.asarray(random), np.asarray(idx)
+    final = last[idx]
+    sigma = lambda q, m: 5 * np.sqrt(q * (1 - q) / m)
+    assert abs(random.mean() - p) < sigma(p, b)
+    # the trajectory goals: in (idx, last] (idx itself at the last row), uniformly
+    traj = ~random
+    assert ((goal[traj] >= np.minimum(idx[traj] + 1, final[traj])) & (goal[traj] <= final[traj])).all()
+    # the random goals: uniform over the rows (each tenth of them holds a tenth)
+    tenth = goal[random] * 10 // n
+    m = random.sum()
+    assert all(abs(np.mean(tenth == i) - 0.1) < sigma(0.1, m) for i in range(10))
+    expect_future = (1 - p) + p * np.mean(final - idx + 1) / n
+    rng = np.random.default_rng(0)
+    terminal_locs = np.unique(last)
+    ours = np.mean((goal >= idx) & (goal <= final))
+    theirs = ogbench_sample_goals(
+        idx, terminal_locs, 0.0, 1 - p, p, False, 0.99, random_goal_idxs=rng.integers(0, n, b),
+        offsets=None, distances=rng.random(b).astype(np.float32), u_traj=rng.random(b), u_cur=rng.random(b))
+    theirs = np.mean((theirs >= idx) & (theirs <= final))
+    for got in (ours, theirs):
+        assert abs(got - expect_future) < sigma(expect_future, b)
+
+
+def test_random_actor_goals_need_trajectories():
+    """Random actor goals come from the trajectories: on the rows' own goals they are an error,
+    the default mixture is not."""
+    data, _ = trajectories()
+    plain = data.replace(traj_last=None)
+    idx, key = jnp.arange(8), jax.random.PRNGKey(0)
+    _, actor = minibatches("auto", plain, idx, key, jnp.int32(8), 0.99, "x")
+    np.testing.assert_array_equal(np.asarray(actor.g), np.asarray(plain.g[:8]))
+    with pytest.raises(ValueError, match="actor_p_randomgoal = 0.5.*set actor_p_randomgoal=0"):
+        minibatches("auto", plain, idx, key, jnp.int32(8), 0.99, "x", actor=actor_goals(0.5))
+    with pytest.raises(ValueError, match="actor_p_randomgoal"):
+        minibatches("rows", data, idx, key, jnp.int32(8), 0.99, "x", actor=actor_goals(0.5))
+    _, actor = minibatches("auto", data, idx, key, jnp.int32(8), 0.99, "x", actor=actor_goals(0.5))
+    assert actor.g.shape == data.g[:8].shape
 
 
 def test_goal_batches_reward_success_and_goals():

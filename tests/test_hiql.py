@@ -6,7 +6,9 @@
   weights and targets, the target value sharing the online representation) and the Polyak
   target of the value heads;
 * the minibatches as OGBench's ``HGCDataset``: subgoals ``subgoal_steps`` ahead (clipped to the
-  trajectory's end, and to the high-level goal for the high-level targets);
+  trajectory's end, and to the high-level goal for the high-level targets); with
+  ``actor_p_randomgoal`` (OGBench's stitch setting) the high-level goals and targets against a
+  NumPy copy of ``HGCDataset.sample`` on three hand-made trajectories;
 * learning on random walks along a line: the two levels together move towards the goal;
 * config and data validation.
 """
@@ -19,6 +21,7 @@ import numpy as np
 import pytest
 from test_crl import walks
 from test_gc_agents import REACH, C, f64, member, np_expectile, np_log_prob, np_mlp, reach_probes
+from test_goals import ogbench_draws
 
 from lazyq_jax import agents
 from lazyq_jax.agents import hiql, reference
@@ -170,6 +173,71 @@ def test_minibatches_are_hgcdatasets():
     np.testing.assert_array_equal(np.asarray(low.a), np.asarray(data.a)[r])
 
 
+def ogbench_high_goals(idxs, terminal_locs, subgoal_steps, actor_p_randomgoal, distances,
+                       high_random_goal_idxs, rand):
+    """OGBench's ``HGCDataset.sample`` (``impls/utils/datasets.py``), the high-level actor goals
+    and targets, line for line (``actor_geom_sample`` False), its ``np.random`` draws given
+    (``distances``, ``high_random_goal_idxs``: ``get_random_idxs``, ``rand``: the
+    ``pick_random`` uniform) and the uniform offsets in float32 (our draws' precision)."""
+    final_state_idxs = terminal_locs[np.searchsorted(terminal_locs, idxs)]
+    f32 = np.float32
+    high_traj_goal_idxs = np.round(
+        np.minimum(idxs + 1, final_state_idxs).astype(f32) * distances
+        + final_state_idxs.astype(f32) * (f32(1) - distances)
+    ).astype(int)
+    high_traj_target_idxs = np.minimum(idxs + subgoal_steps, high_traj_goal_idxs)
+    high_random_target_idxs = np.minimum(idxs + subgoal_steps, final_state_idxs)
+    pick_random = rand < actor_p_randomgoal
+    high_goal_idxs = np.where(pick_random, high_random_goal_idxs, high_traj_goal_idxs)
+    high_target_idxs = np.where(pick_random, high_random_target_idxs, high_traj_target_idxs)
+    return high_goal_idxs, high_target_idxs
+
+
+@pytest.mark.parametrize("p", [0.5, 0.0, 1.0])
+def test_random_high_goals_are_hgcdatasets(p):
+    """``actor_p_randomgoal = p``: the high-level goals and targets of :meth:`HIQL.batch` on
+    three hand-made trajectories equal OGBench's ``HGCDataset.sample``
+    (:func:`ogbench_high_goals`) fed our draws (its ``pick_random = rand < p`` with ``rand``
+    our ``1 - u``, ``u`` the trajectory-or-random uniform of
+    :func:`~lazyq_jax.agents.goals.sample_goal_rows`); a random goal's target is
+    ``subgoal_steps`` ahead on the row's own trajectory (clipped to its end), a trajectory
+    goal's no later than the goal; about ``p`` of the goals random (5 binomial sigmas)."""
+    lengths, k = [9, 14, 6], 4
+    terminal_locs = np.cumsum(lengths) - 1
+    last = np.repeat(terminal_locs, lengths)
+    n = len(last)
+    idx = np.arange(n)
+    s = np.stack([idx, np.repeat(np.arange(len(lengths)), lengths)], -1).astype(np.float32)
+    data = Transitions(s=jnp.asarray(s), a=jnp.zeros((n, 2)), s_next=jnp.asarray(s + 1),
+                       r=-jnp.ones(n), g=jnp.asarray(s), done=jnp.zeros(n, bool),
+                       traj_last=jnp.asarray(last, jnp.int32))
+    agent = hiql.make(hiql.HIQLConfig(**{**TINY, "subgoal_steps": k, "actor_p_randomgoal": p}),
+                      Problem(action_length=1.0, action_set="box"))
+    b = 20_000
+    rows = jax.random.randint(jax.random.PRNGKey(0), (b,), 0, n)
+    key = jax.random.PRNGKey(1)
+    _, low, high = jax.jit(agent.batch)(data, rows, key, jnp.int32(n))
+    goal, target = (np.asarray(x[:, 0]).astype(int) for x in (high.g, high.s_next))
+    r = np.asarray(rows)
+    draws = ogbench_draws(jax.random.split(key)[1], rows.shape, n, agent.config.gamma)
+    want_goal, want_target = ogbench_high_goals(r, terminal_locs, k, p, draws["distances"],
+                                                draws["random_goal_idxs"], 1.0 - draws["u_traj"])
+    np.testing.assert_array_equal(goal, want_goal)
+    np.testing.assert_array_equal(target, want_target)
+    np.testing.assert_array_equal(np.asarray(high.s), s[r])
+    np.testing.assert_array_equal(np.asarray(low.g[:, 0]).astype(int), np.minimum(r + k, last[r]))
+    # without the draws: a goal outside the row's future [r, last] is a random one
+    outside = (goal < r) | (goal > last[r])
+    np.testing.assert_array_equal(target[outside], np.minimum(r + k, last[r])[outside])
+    inside = ~outside & (target != np.minimum(r + k, last[r]))  # only trajectory goals
+    np.testing.assert_array_equal(target[inside], np.minimum(r + k, goal)[inside])
+    expect_outside = p * (1 - np.mean(last[r] - r + 1) / n)
+    assert abs(outside.mean() - expect_outside) <= 5 * np.sqrt(expect_outside * (1 - expect_outside) / b)
+    if p == 0.0:  # OGBench's default: every goal in the row's future, the target before it
+        assert not outside.any()
+        np.testing.assert_array_equal(target, np.minimum(r + k, goal))
+
+
 # Measured over 4 seeds (key and data), 3,000 steps: sign agreement with the optimal move
 # 1.00, mean a . sign(g - s) / c 0.77-0.85.
 LEARN = {"batch_size": 256, "width": 32, "depth": 3, "blocks": 1, "learning_rate": 1e-3,
@@ -193,14 +261,18 @@ def test_defaults_are_ogbenchs():
     cfg = hiql.HIQLConfig()
     assert (cfg.learning_rate, cfg.batch_size, cfg.width, cfg.depth, cfg.gamma, cfg.tau,
             cfg.expectile, cfg.low_alpha, cfg.high_alpha, cfg.subgoal_steps, cfg.rep_dim,
-            cfg.layer_norm) == (3e-4, 1024, 512, 4, 0.99, 0.005, 0.7, 3.0, 3.0, 25, 10, True)
+            cfg.layer_norm, cfg.actor_p_randomgoal) == (3e-4, 1024, 512, 4, 0.99, 0.005, 0.7, 3.0,
+                                                        3.0, 25, 10, True, 0.0)
     assert agents.config_class("hiql") is hiql.HIQLConfig and "hiql" in agents.BASELINES
 
 
 @pytest.mark.parametrize("field, value, match", [
     ("subgoal_steps", 0, "subgoal_steps must be"), ("rep_dim", 0, "rep_dim must be"),
     ("expectile", 1.0, "expectile must be"), ("low_alpha", -1.0, "low_alpha must be"),
-    ("tau", 0.0, "tau must be"), ("layer_norm", "yes", "layer_norm must be")])
+    ("tau", 0.0, "tau must be"), ("layer_norm", "yes", "layer_norm must be"),
+    ("actor_p_randomgoal", -0.1, r"HIQLConfig\.actor_p_randomgoal must be a finite number in \[0, 1\]"),
+    ("actor_p_randomgoal", 1.5, r"actor_p_randomgoal must be .* got 1\.5"),
+    ("actor_p_randomgoal", float("nan"), "actor_p_randomgoal must be")])
 def test_config_errors(field, value, match):
     with pytest.raises(ConfigError, match=match):
         hiql.HIQLConfig(**{field: value})

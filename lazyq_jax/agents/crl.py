@@ -32,7 +32,8 @@ Losses, per step on one minibatch of ``B`` rows, summed and minimised by one Ada
 
 Goals, as OGBench's CRL: the critic's goals a later state of the row's trajectory at a
 geometric offset (``value_p_trajgoal = 1``, ``value_geom_sample``: the positive pairs), the
-actor's a uniform later state (``actor_p_trajgoal = 1``), drawn every minibatch
+actor's a uniform later state (``actor_p_trajgoal = 1``; with ``actor_p_randomgoal = p``,
+OGBench's stitch setting 0.5, a random state with ``p``), drawn every minibatch
 (:mod:`lazyq_jax.agents.goals`, ``goals="auto"``); on data without trajectories (or
 ``goals="rows"``) each row's own goal serves both, which is CRL only where those goals are
 states the row's trajectory reaches later.  Goals must be states (``g[N, d_s]``).
@@ -76,7 +77,13 @@ from lazyq_jax.agents.common import (
 from lazyq_jax.agents.gcbc import GCMLP, actor_mean, actor_net
 from lazyq_jax.agents.gciql import ddpg_bc_loss
 from lazyq_jax.agents.gcivl import check_bool
-from lazyq_jax.agents.goals import ACTOR_GOALS, GoalMix, check_goal_source, minibatches
+from lazyq_jax.agents.goals import (
+    GoalMix,
+    actor_goals,
+    check_actor_goals,
+    check_goal_source,
+    minibatches,
+)
 from lazyq_jax.types import Transitions
 
 # OGBench's CRL critic goals: a later state of the same trajectory at a geometric offset
@@ -91,7 +98,11 @@ class CRLConfig(BaselineConfig):
     (512), ``alpha`` (the BC weight of DDPG+BC: OGBench's point-maze 0.03, its file default
     0.1; >= 0) and ``layer_norm`` (in ``phi`` and ``psi``, True).
     ``goals``: ``"auto"`` (default) OGBench's fresh goals from the trajectories when the data
-    have them, else the rows' own goals; ``"trajectories"`` (required) or ``"rows"``."""
+    have them, else the rows' own goals; ``"trajectories"`` (required) or ``"rows"``.
+    ``actor_p_randomgoal``: OGBench's actor goals (:func:`~lazyq_jax.agents.goals.actor_goals`):
+    a random state with this probability, else a uniform later state of the row's trajectory
+    (0, OGBench's default; 0.5 its stitch datasets' setting, ``impls/hyperparameters.sh``; in
+    ``[0, 1]``; above 0 needs goals from the trajectories)."""
 
     batch_size: int = 1024
     learning_rate: float = 3e-4
@@ -102,6 +113,7 @@ class CRLConfig(BaselineConfig):
     alpha: float = 0.03
     layer_norm: bool = True
     goals: str = "auto"
+    actor_p_randomgoal: float = 0.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -109,6 +121,7 @@ class CRLConfig(BaselineConfig):
         check_range(self, "alpha", 0.0, math.inf)
         check_bool(self, "layer_norm")
         check_goal_source(self)
+        check_actor_goals(self)
 
 
 class CRL(Baseline):
@@ -189,7 +202,8 @@ class CRL(Baseline):
         """``(critic batch, actor batch)``: OGBench's CRL goals (a geometric and a uniform later
         state of the trajectory) from the trajectories, or the rows' own goals."""
         return minibatches(self.config.goals, data, rows, key, n_valid, self.config.gamma,
-                           self.name, value=FUTURE_GOALS, actor=ACTOR_GOALS)
+                           self.name, value=FUTURE_GOALS,
+                           actor=actor_goals(self.config.actor_p_randomgoal))
 
     def update(self, model, batch, key, step):
         """One Adam step; ``batch``: rows, or ``(critic rows, actor rows)`` (:meth:`batch`)."""

@@ -50,7 +50,8 @@ constant ``n_a / 2 log(2 pi)``, so ``L_pi`` differs from OGBench's by the consta
 Goals, as OGBench's: on trajectory data (``Transitions.traj_last``, e.g. the point maze)
 every minibatch draws fresh ``value_goals`` (for ``L_V`` and ``L_Q``: current state 0.2 / geometric future 0.5 /
 random 0.3, with their ``r = success - 1`` and ``done = success``) and ``actor_goals`` (a
-uniform future state of the same trajectory) from the trajectories
+uniform future state of the same trajectory; with ``actor_p_randomgoal = p``, OGBench's
+stitch setting 0.5, a random state with ``p``) from the trajectories
 (:mod:`lazyq_jax.agents.goals`, ``goals="auto"``); on other data (or ``goals="rows"``) each
 row's own goal, reward and ``done`` serve every loss.  Deviations from OGBench.  Inputs are :func:`~lazyq_jax.agents.common.observe` (states divided
 by ``problem.state_scale``, angle goals as ``cos, sin``); steps from
@@ -85,8 +86,8 @@ from lazyq_jax.agents.common import (
     project,
 )
 from lazyq_jax.agents.gcbc import actor_mean, actor_net, actor_stats, value_net
-from lazyq_jax.agents.goals import check_goal_source, minibatches
 from lazyq_jax.agents.gcivl import check_bool
+from lazyq_jax.agents.goals import actor_goals, check_actor_goals, check_goal_source, minibatches
 from lazyq_jax.local_model import expectile_loss
 from lazyq_jax.types import Transitions
 
@@ -116,7 +117,11 @@ class GCIQLConfig(BaselineConfig):
     ``goals``: where the goals of a minibatch come from: ``"auto"`` (default) OGBench's
     fresh value and actor goals from the trajectories when the data have them
     (``Transitions.traj_last``, :mod:`lazyq_jax.agents.goals`), else the rows' own goals;
-    ``"trajectories"`` (required) or ``"rows"``."""
+    ``"trajectories"`` (required) or ``"rows"``.
+    ``actor_p_randomgoal``: OGBench's actor goals (:func:`~lazyq_jax.agents.goals.actor_goals`):
+    a random state with this probability, else a uniform later state of the row's trajectory
+    (0, OGBench's default; 0.5 its stitch datasets' setting, ``impls/hyperparameters.sh``; in
+    ``[0, 1]``; above 0 needs goals from the trajectories)."""
 
     batch_size: int = 1024
     learning_rate: float = 3e-4
@@ -128,6 +133,7 @@ class GCIQLConfig(BaselineConfig):
     alpha: float = 0.003
     layer_norm: bool = True
     goals: str = "auto"
+    actor_p_randomgoal: float = 0.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -136,6 +142,7 @@ class GCIQLConfig(BaselineConfig):
         check_range(self, "alpha", 0.0, math.inf)
         check_bool(self, "layer_norm")
         check_goal_source(self)
+        check_actor_goals(self)
 
 
 class GCIQL(Baseline):
@@ -192,7 +199,9 @@ class GCIQL(Baseline):
 
     def batch(self, data, rows, key, n_valid):
         """``(value batch, actor batch)``: OGBench's goals from the trajectories, or the rows'."""
-        return minibatches(self.config.goals, data, rows, key, n_valid, self.config.gamma, self.name)
+        cfg = self.config
+        return minibatches(cfg.goals, data, rows, key, n_valid, cfg.gamma, self.name,
+                           actor=actor_goals(cfg.actor_p_randomgoal))
 
     def loss(self, params: Any, target_critic: Any, b: Transitions,
              b_actor: Transitions | None = None) -> tuple[jax.Array, dict]:

@@ -48,7 +48,8 @@ are OGBench's; on the sphere (``"ball"``, not in OGBench) it is ``cos(u, a)``
 Goals, as OGBench's: on trajectory data (``Transitions.traj_last``, e.g. the point maze)
 every minibatch draws fresh ``value_goals`` (current state 0.2 / geometric future 0.5 /
 random 0.3, with their ``r = success - 1`` and ``done = success``) and ``actor_goals`` (a
-uniform future state of the same trajectory) from the trajectories
+uniform future state of the same trajectory; with ``actor_p_randomgoal = p``, OGBench's
+stitch setting 0.5, a random state with ``p``) from the trajectories
 (:mod:`lazyq_jax.agents.goals`, ``goals="auto"``); on other data (or ``goals="rows"``) each
 row's own goal, reward and ``done`` serve every loss.  Deviations from OGBench.  Inputs are
 :func:`~lazyq_jax.agents.common.observe` (states divided by ``problem.state_scale``,
@@ -85,7 +86,13 @@ from lazyq_jax.agents.common import (
     select,
 )
 from lazyq_jax.agents.gcbc import actor_mean, actor_net, actor_stats, value_net
-from lazyq_jax.agents.goals import check_goal_source, minibatches, uses_trajectories
+from lazyq_jax.agents.goals import (
+    actor_goals,
+    check_actor_goals,
+    check_goal_source,
+    minibatches,
+    uses_trajectories,
+)
 from lazyq_jax.config import ConfigError
 from lazyq_jax.local_model import expectile_loss
 from lazyq_jax.targets import multi_step_rows
@@ -130,7 +137,11 @@ class GCIVLConfig(BaselineConfig):
     ``train.target_steps``: the value loss's ``r + gamma m V^t(s', g)`` becomes each value
     row's return over up to ``H`` steps of its own trajectory at its fresh goal,
     bootstrapped where the path stopped (:func:`lazyq_jax.targets.multi_step_rows`); the
-    actor's advantage stays one step.  Needs OGBench's goals from the trajectories."""
+    actor's advantage stays one step.  Needs OGBench's goals from the trajectories.
+    ``actor_p_randomgoal``: OGBench's actor goals (:func:`~lazyq_jax.agents.goals.actor_goals`):
+    a random state with this probability, else a uniform later state of the row's trajectory
+    (0, OGBench's default; 0.5 its stitch datasets' setting, ``impls/hyperparameters.sh``; in
+    ``[0, 1]``; above 0 needs goals from the trajectories)."""
 
     batch_size: int = 1024
     learning_rate: float = 3e-4
@@ -145,6 +156,7 @@ class GCIVLConfig(BaselineConfig):
     goals: str = "auto"
     target_period: int = 0
     target_steps: int = 1
+    actor_p_randomgoal: float = 0.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -156,6 +168,7 @@ class GCIVLConfig(BaselineConfig):
         check_range(self, "max_weight", 0.0, math.inf, lo_open=True)
         check_bool(self, "layer_norm")
         check_goal_source(self)
+        check_actor_goals(self)
 
 
 class GCIVL(Baseline):
@@ -193,7 +206,8 @@ class GCIVL(Baseline):
         with ``target_steps > 1`` also the value rows' discounts, their ``s_next`` and ``r``
         those of the paths."""
         cfg = self.config
-        value, actor = minibatches(cfg.goals, data, rows, key, n_valid, cfg.gamma, self.name)
+        value, actor = minibatches(cfg.goals, data, rows, key, n_valid, cfg.gamma, self.name,
+                                   actor=actor_goals(cfg.actor_p_randomgoal))
         if cfg.target_steps == 1:
             return value, actor
         if not uses_trajectories(cfg.goals, data, self.name):

@@ -43,6 +43,9 @@ Goals, as OGBench's ``HGCDataset``: value goals as GCIVL's (the current state 0.
 geometric later state 0.5, a random state 0.3; ``r = success - 1``), the high-level goals a
 uniform later state of the same trajectory (``actor_p_trajgoal = 1``), drawn every
 minibatch; HIQL needs trajectory data (``Transitions.traj_last``) and goals that are states.
+With ``actor_p_randomgoal = p`` (OGBench's stitch setting 0.5) a high-level goal is a random
+state with ``p``, and its target then the state ``subgoal_steps`` later on the row's own
+trajectory, clipped to the trajectory's last state (the random goal plays no part in it).
 
 Networks: ``u``, ``h_e`` are OGBench's MLP (``depth - 1`` hidden layers of ``width``: Dense,
 GELU, LayerNorm if ``layer_norm``; a linear output), the twin heads stacked
@@ -87,10 +90,11 @@ from lazyq_jax.agents.common import (
 from lazyq_jax.agents.gcbc import GCMLP, actor_stats, value_net
 from lazyq_jax.agents.gcivl import check_bool, ivl_value_loss
 from lazyq_jax.agents.goals import (
-    ACTOR_GOALS,
     VALUE_GOALS,
+    actor_goals,
+    check_actor_goals,
     fresh_goals,
-    sample_goal_rows,
+    sample_goal_rows_and_random,
     uses_trajectories,
 )
 from lazyq_jax.types import Transitions
@@ -103,7 +107,11 @@ class HIQLConfig(BaselineConfig):
     layer, ``gamma`` 0.99) plus ``tau`` (target rate, 0.005), ``expectile`` (0.7),
     ``low_alpha`` and ``high_alpha`` (the AWR temperatures, 3; >= 0), ``max_weight`` (clip of
     the AWR weights, 100), ``subgoal_steps`` (25), ``rep_dim`` (the goal representation's
-    size, 10) and ``layer_norm`` (in the value and the representation, True)."""
+    size, 10) and ``layer_norm`` (in the value and the representation, True).
+    ``actor_p_randomgoal``: the probability of a random high-level goal (its target the state
+    ``subgoal_steps`` later, clipped to the trajectory's end), else a uniform later state of
+    the trajectory (0, OGBench's default; 0.5 its stitch datasets' setting,
+    ``impls/hyperparameters.sh``; in ``[0, 1]``)."""
 
     batch_size: int = 1024
     learning_rate: float = 3e-4
@@ -118,6 +126,7 @@ class HIQLConfig(BaselineConfig):
     subgoal_steps: int = 25
     rep_dim: int = 10
     layer_norm: bool = True
+    actor_p_randomgoal: float = 0.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -129,6 +138,7 @@ class HIQLConfig(BaselineConfig):
         check_int(self, "subgoal_steps", 1)
         check_int(self, "rep_dim", 1)
         check_bool(self, "layer_norm")
+        check_actor_goals(self)
 
 
 def length_normalise(u: jax.Array) -> jax.Array:
@@ -242,7 +252,10 @@ class HIQL(Baseline):
 
     def batch(self, data, rows, key, n_valid):
         """``(value rows, low-level rows, high-level rows)`` of ``rows``, as OGBench's
-        ``HGCDataset.sample`` (module docstring)."""
+        ``HGCDataset.sample`` (module docstring): the high-level goal a uniform later row of the
+        trajectory, its target ``min(row + subgoal_steps, goal)``, or with
+        ``actor_p_randomgoal`` a random row, its target ``min(row + subgoal_steps, last row
+        of the trajectory)``."""
         uses_trajectories("trajectories", data, self.name)  # raises without trajectories
         k_value, k_high = jax.random.split(key)
         cfg = self.config
@@ -250,8 +263,10 @@ class HIQL(Baseline):
         g, r, done = fresh_goals(data, rows, k_value, n_valid, cfg.gamma, VALUE_GOALS)
         final = data.traj_last[rows]
         low = b.replace(g=data.s[jnp.minimum(rows + cfg.subgoal_steps, final)])
-        goal = sample_goal_rows(k_high, rows, data.traj_last, n_valid, ACTOR_GOALS, cfg.gamma)
-        high = b.replace(g=data.s[goal], s_next=data.s[jnp.minimum(rows + cfg.subgoal_steps, goal)])
+        goal, random = sample_goal_rows_and_random(k_high, rows, data.traj_last, n_valid,
+                                                   actor_goals(cfg.actor_p_randomgoal), cfg.gamma)
+        target = jnp.minimum(rows + cfg.subgoal_steps, jnp.where(random, final, goal))
+        high = b.replace(g=data.s[goal], s_next=data.s[target])
         return b.replace(g=g, r=r, done=done), low, high
 
     def update(self, model, batch, key, step):

@@ -43,7 +43,8 @@ networks):
 
 Goals, as OGBench's QRL: the value goals are random dataset states
 (``value_p_randomgoal = 1``; the rows' rewards and ``done`` are never used), the actor goals a
-uniform future state of the same trajectory (``actor_p_trajgoal = 1``), drawn every minibatch
+uniform future state of the same trajectory (``actor_p_trajgoal = 1``; with
+``actor_p_randomgoal = p``, OGBench's stitch setting 0.5, a random state with ``p``), drawn every minibatch
 (:mod:`lazyq_jax.agents.goals`, ``goals="auto"``); on data without trajectories (or
 ``goals="rows"``) each row's own goal serves both.  Goals must be states (``g[N, d_s]``): the
 quasimetric compares two states.
@@ -84,7 +85,13 @@ from lazyq_jax.agents.common import (
 from lazyq_jax.agents.gcbc import GCMLP, actor_mean, actor_net
 from lazyq_jax.agents.gciql import ddpg_bc_loss
 from lazyq_jax.agents.gcivl import check_bool
-from lazyq_jax.agents.goals import ACTOR_GOALS, GoalMix, check_goal_source, minibatches
+from lazyq_jax.agents.goals import (
+    GoalMix,
+    actor_goals,
+    check_actor_goals,
+    check_goal_source,
+    minibatches,
+)
 from lazyq_jax.types import Transitions
 
 # OGBench's QRL value goals: a random dataset state always
@@ -165,7 +172,11 @@ class QRLConfig(BaselineConfig):
     BC weight of DDPG+BC: OGBench's point-maze 0.0003, its file default 0.003; >= 0) and
     ``layer_norm`` (in ``phi`` and the dynamics, True).
     ``goals``: ``"auto"`` (default) OGBench's fresh goals from the trajectories when the data
-    have them, else the rows' own goals; ``"trajectories"`` (required) or ``"rows"``."""
+    have them, else the rows' own goals; ``"trajectories"`` (required) or ``"rows"``.
+    ``actor_p_randomgoal``: OGBench's actor goals (:func:`~lazyq_jax.agents.goals.actor_goals`):
+    a random state with this probability, else a uniform later state of the row's trajectory
+    (0, OGBench's default; 0.5 its stitch datasets' setting, ``impls/hyperparameters.sh``; in
+    ``[0, 1]``; above 0 needs goals from the trajectories)."""
 
     batch_size: int = 1024
     learning_rate: float = 3e-4
@@ -178,6 +189,7 @@ class QRLConfig(BaselineConfig):
     alpha: float = 0.0003
     layer_norm: bool = True
     goals: str = "auto"
+    actor_p_randomgoal: float = 0.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -190,6 +202,7 @@ class QRLConfig(BaselineConfig):
         check_range(self, "alpha", 0.0, math.inf)
         check_bool(self, "layer_norm")
         check_goal_source(self)
+        check_actor_goals(self)
 
 
 class QRL(Baseline):
@@ -285,7 +298,8 @@ class QRL(Baseline):
         """``(value batch, actor batch)``: OGBench's QRL goals (random states; a uniform future
         state) from the trajectories, or the rows' own goals."""
         return minibatches(self.config.goals, data, rows, key, n_valid, self.config.gamma,
-                           self.name, value=RANDOM_GOALS, actor=ACTOR_GOALS)
+                           self.name, value=RANDOM_GOALS,
+                           actor=actor_goals(self.config.actor_p_randomgoal))
 
     def update(self, model, batch, key, step):
         """One Adam step; ``batch``: rows, or ``(value rows, actor rows)`` (:meth:`batch`)."""
