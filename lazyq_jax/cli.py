@@ -26,6 +26,7 @@ from lazyq_jax.data import DatasetError
 from lazyq_jax.parallel import (enable_compilation_cache, force_host_devices, is_main_process,
                                 make_mesh, maybe_initialize_distributed)
 from lazyq_jax.run import RunDirError, evaluate_run, locked, report, run
+from lazyq_jax.run.benchmark import benchmark
 from lazyq_jax.run.sources import static_data
 
 
@@ -100,6 +101,22 @@ def cmd_study(args) -> None:
         overwrite=args.overwrite, progress=not args.no_progress)
 
 
+def cmd_benchmark(args) -> None:
+    if args.seeds < 1:
+        raise ConfigError(f"--seeds must be >= 1, got {args.seeds}")
+    sets = args.set or []
+    if any(a.split("=", 1)[0].strip() == "task" for a in sets):
+        raise ConfigError("a benchmark runs its suite's tasks; choose them with --datasets, not --set task=...")
+    run_dir = args.run_dir or Path("runs") / f"bench_{args.suite}"
+    seeds = list(range(args.first_seed, args.first_seed + args.seeds))
+    command = " ".join(["python -m lazyq_jax", *sys.argv[1:]]) if sys.argv[1:2] == ["benchmark"] else ""
+    data = benchmark(args.suite, run_dir, seeds, _methods(args.methods),
+                     datasets=_methods(args.datasets) if args.datasets else None, preset=args.preset,
+                     sets=sets, progress=not args.no_progress, command=command)
+    if is_main_process():
+        print(f"{len(data['datasets'])} datasets -> {run_dir / 'results.json'}, {run_dir / 'results.md'}")
+
+
 def cmd_evaluate(args) -> None:
     evaluate_run(args.run_dir, methods=_methods(args.methods) if args.methods else None,
                  overrides=args.set or [], figures=not args.no_figures,
@@ -122,6 +139,8 @@ def cmd_report(args) -> int:
         copies = report.archive(args.archive, args.run_dirs[0])
         print(f"{len(copies)} files of {args.run_dirs[0]} -> {args.archive}")
         return 0
+    if args.suite and args.run_dirs:
+        raise RunDirError("--suite DIR reads a benchmark directory; name no RUN_DIR beside it")
     text = report.render(args, fmt=args.format)
     if args.out:
         args.out.write_text(text)
@@ -170,6 +189,22 @@ def main(argv: list[str] | None = None) -> int:
                    help="seeds are first-seed .. first-seed + seeds - 1 (default 0)")
     p.add_argument("--methods", default="lazy", help=f"{methods_help} (default lazy)")
     p.set_defaults(func=cmd_study)
+
+    p = sub.add_parser("benchmark", help="every dataset of a benchmark suite, resumably, into one "
+                       "directory: RUN_DIR/<dataset>/ runs, RUN_DIR/results.json and results.md")
+    p.add_argument("suite", help=f"one of {', '.join(tasks.SUITES)}")
+    p.add_argument("--datasets", default=None, help="comma-separated datasets of the suite (default all; "
+                   "OGBench's ids, with or without -v0)")
+    p.add_argument("--preset", default="paper", help="each dataset's preset (default paper; smoke: tiny)")
+    p.add_argument("--run-dir", type=Path, default=None, help="the benchmark directory (default "
+                   f"runs/bench_SUITE); resumed when it exists; {LOCK_HELP}")
+    p.add_argument("--set", action="append", metavar="FIELD=VALUE",
+                   help="override a config field of every dataset, e.g. train.cycles=100 (repeatable)")
+    p.add_argument("--seeds", type=int, default=3, help="number of seeds (default 3)")
+    p.add_argument("--first-seed", type=int, default=0)
+    p.add_argument("--methods", default="lazy", help=f"{methods_help} (default lazy)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.set_defaults(func=cmd_benchmark)
 
     for name in ("evaluate", "plot"):
         p = sub.add_parser(name, help=("reload a trained run, evaluate every method again, write "

@@ -36,6 +36,7 @@ from lazyq_jax import tasks
 from lazyq_jax.config import ConfigError, to_dict
 from lazyq_jax.run.results import CI, method_label
 from lazyq_jax.run.rundir import RunDirError, config_diff, lookup, parse_method
+from lazyq_jax.run import suite
 from lazyq_jax.run.runner import open_existing
 from lazyq_jax.stats import format_ci, t_interval
 
@@ -223,6 +224,9 @@ def markdown(data: dict) -> str:
 
 
 def render(args: argparse.Namespace, root: Path = Path("."), fmt: str = "md") -> str:
+    if args.suite:  # a benchmark directory's table (lazyq_jax.run.suite)
+        data = suite.table(root / args.suite, command=f"python -m lazyq_jax report --suite {args.suite}")
+        return suite.markdown(data) if fmt == "md" else json.dumps(data, indent=1) + "\n"
     data = table(args, root)
     return markdown(data) if fmt == "md" else json.dumps(data, indent=1) + "\n"
 
@@ -243,6 +247,9 @@ def arguments(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentPars
                    help="each row's paired difference to the first row over the seeds both have")
     p.add_argument("--per-goal", action="store_true",
                    help="protocol A's episodes per goal direction (push, arm): correct / wrong / not pushed")
+    p.add_argument("--suite", type=Path, metavar="DIR", default=None,
+                   help="a benchmark directory's table (python -m lazyq_jax benchmark; or its report "
+                   "--archive copy): each dataset's success per method beside the published numbers")
     return p
 
 
@@ -282,7 +289,19 @@ def blocks(files: Sequence[Path], update: bool = False) -> tuple[list[str], list
 
 def archive(dest: Path, run_dir: Path) -> list[Path]:
     """Copy what :func:`table` reads of ``run_dir`` (:data:`ARCHIVED`: run.json, results.json,
-    each method's method.json, timings.json and eval.json) into ``dest``; returns the copies."""
+    each method's method.json, timings.json and eval.json) into ``dest``; returns the copies.
+    A benchmark directory (``suite.json``): its own table files and each finished dataset's."""
+    if (run_dir / suite.SUITE_FILE).is_file():
+        copies = []
+        for name in (suite.SUITE_FILE, "results.json", "results.md"):
+            if (run_dir / name).is_file():
+                dest.mkdir(parents=True, exist_ok=True)
+                copies.append(dest / name)
+                shutil.copyfile(run_dir / name, copies[-1])
+        for name in suite.read_suite(run_dir)["datasets"]:
+            if (run_dir / name / "results.json").is_file():
+                copies += archive(dest / name, run_dir / name)
+        return copies
     _read(run_dir)
     copies = []
     for pattern in ARCHIVED:

@@ -1,0 +1,73 @@
+"""``python -m lazyq_jax benchmark SUITE``: every dataset of a benchmark suite
+(:data:`lazyq_jax.tasks.SUITES`, e.g. ``ogbench-pointmaze``: OGBench's eight pointmaze datasets)
+with the same methods and seeds, resumably, into one directory, and one table.
+
+``RUN_DIR/suite.json`` names the suite, datasets, methods, seeds and preset; ``RUN_DIR/<dataset>/``
+is that dataset's ordinary run directory (:func:`lazyq_jax.run.runner.run` with ``resume``:
+a finished dataset is only re-evaluated from its stored evaluation, an interrupted one goes on
+from its newest checkpoints); after each dataset ``RUN_DIR/results.json`` and ``results.md``
+are rewritten (:mod:`lazyq_jax.run.suite`), so an interrupted benchmark shows what it has.
+Each dataset takes its task's preset (its recipe and discount; one set of lazy Q settings) and
+the same ``--set`` overrides; baselines take the task's per-dataset settings
+(:meth:`~lazyq_jax.tasks.base.Task.method_defaults`).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Sequence
+
+from lazyq_jax import tasks
+from lazyq_jax.config import ConfigError, override
+from lazyq_jax.run import suite
+from lazyq_jax.run.rundir import RunDirError, locked, write_json
+from lazyq_jax.run.runner import run
+from lazyq_jax.run.sources import log
+
+
+def plan(name: str, datasets: Sequence[str] | None = None) -> list[str]:
+    """The datasets of suite ``name`` to run (all, or ``datasets`` of it, in the suite's order)."""
+    if name not in tasks.SUITES:
+        raise ConfigError(f"unknown benchmark suite {name!r}; suites: {', '.join(tasks.SUITES)}")
+    members = tasks.SUITES[name]
+    if not datasets:
+        return list(members)
+    chosen = [tasks.canonical(d) for d in datasets]
+    unknown = [d for d in chosen if d not in members]
+    if unknown:
+        raise ConfigError(f"{', '.join(unknown)}: not in suite {name!r}; its datasets: {', '.join(members)}")
+    return [d for d in members if d in chosen]
+
+
+def benchmark(name: str, run_dir: Path, seeds: Sequence[int], methods: Sequence[str], *,
+              datasets: Sequence[str] | None = None, preset: str = "paper", sets: Sequence[str] = (),
+              progress: bool = True, command: str = "") -> dict:
+    """Run suite ``name``'s datasets (module docstring); returns the table's data."""
+    names = plan(name, datasets)
+    configs = {}
+    for d in names:  # every config checked before anything runs
+        configs[d] = override(tasks.preset(d, preset), list(sets))
+        tasks.get(d).check(configs[d])
+    run_dir = Path(run_dir)
+    meta = {"suite": name, "datasets": names, "methods": list(methods), "seeds": list(seeds),
+            "preset": preset, "sets": list(sets), "command": command}
+    with locked(run_dir):
+        path = run_dir / suite.SUITE_FILE
+        if path.exists():
+            old = json.loads(path.read_text())
+            differ = [k for k in ("suite", "seeds", "preset", "sets") if old.get(k) != meta[k]]
+            if differ:
+                raise RunDirError(f"{run_dir} holds a benchmark whose {', '.join(differ)} differ "
+                                  f"({', '.join(f'{k}: {old.get(k)}' for k in differ)}); resume it with the "
+                                  "same settings or choose another --run-dir")
+            meta["datasets"] = [d for d in tasks.SUITES[name] if d in set(old["datasets"]) | set(names)]
+            meta["methods"] = list(dict.fromkeys([*old["methods"], *methods]))
+        write_json(path, meta)
+    for i, d in enumerate(names):
+        log(f"benchmark {name}: dataset {i + 1}/{len(names)}: {d}")
+        run(configs[d], run_dir / d, seeds=list(seeds), methods=list(methods), resume=True,
+            progress=progress)
+        with locked(run_dir):
+            data = suite.write(run_dir, command)
+    return data

@@ -1,0 +1,127 @@
+"""A benchmark suite's table: one run directory per dataset under one suite directory, each
+dataset's success per method as mean [95 % CI] over the seeds beside the published numbers,
+and each method's budget as a share of the published one.
+
+``SUITE_DIR/suite.json`` (written by ``benchmark``) names the suite, its datasets (in order),
+methods and seeds; ``SUITE_DIR/<dataset>/`` is an ordinary run directory (``results.json``,
+``run.json``, each method's ``method.json`` and ``timings.json``), so ``report --archive``
+copies work as well as live runs.  Datasets whose run has no ``results.json`` yet are listed as
+pending.  The rate is the task's first (:attr:`~lazyq_jax.tasks.base.Task.rates`), the
+published numbers the task's (:attr:`~lazyq_jax.tasks.base.Task.published`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+from lazyq_jax import tasks
+from lazyq_jax.run.results import CI
+from lazyq_jax.run.rundir import RunDirError, parse_method, write_json
+from lazyq_jax.stats import format_ci, t_interval
+
+SUITE_FILE = "suite.json"
+
+
+def read_suite(suite_dir: Path) -> dict:
+    """``suite.json`` of ``suite_dir`` (:class:`RunDirError` saying what is wrong)."""
+    path = Path(suite_dir) / SUITE_FILE
+    if not path.is_file():
+        raise RunDirError(f"{suite_dir}: no {SUITE_FILE} (not a benchmark directory: make one with "
+                          "python -m lazyq_jax benchmark SUITE --run-dir DIR)")
+    return json.loads(path.read_text())
+
+
+def _steps(method_dir: Path, timings: dict) -> tuple[int, int] | None:
+    """``(gradient steps, batch size)`` of a trained method, as its records state them."""
+    record = json.loads((method_dir / "method.json").read_text()) if (method_dir / "method.json").exists() else {}
+    batch = (record.get("train") or record.get("config") or {}).get("batch_size")
+    steps = timings.get("steps") or (record.get("config") or {}).get("steps")
+    return (int(steps), int(batch)) if steps and batch else None
+
+
+def _method(run_dir: Path, name: str, results: dict, key: str) -> dict | None:
+    m = results["methods"].get(name)
+    if m is None:
+        return None
+    values = [row.get(key) for row in m["per_seed"]]
+    ok = values and all(isinstance(v, (int, float)) and math.isfinite(v) for v in values)
+    timings = m.get("timings", {})
+    return {"rate": t_interval(values, bounds=(0.0, 1.0)) if ok else None,
+            "seeds": [row["seed"] for row in m["per_seed"]],
+            "steps": _steps(run_dir / parse_method(name).dirname, timings),
+            "train_s_per_seed": (timings["train_s"] + timings.get("prepare_s", 0.0)) / len(m["per_seed"])
+            if timings.get("train_s") else None}
+
+
+def table(suite_dir: Path, command: str | None = None) -> dict:
+    """The suite's table as data (``results.json`` of a benchmark directory)."""
+    suite_dir = Path(suite_dir)
+    meta = read_suite(suite_dir)
+    methods = list(meta["methods"])
+    out = {"suite": meta["suite"], "ci": CI, "methods": methods, "seeds": meta["seeds"],
+           "command": command or meta.get("command", ""), "datasets": []}
+    for name in meta["datasets"]:
+        task = tasks.get(name)
+        key = task.rates[0][0]
+        entry = {"dataset": name, "rate": key, "published": {m: list(v) for m, v in task.published.items()},
+                 "published_source": task.published_source,
+                 "published_budget": list(task.published_budget) if task.published_budget else None,
+                 "methods": {}, "pending": True}
+        run_dir = suite_dir / name
+        if (run_dir / "results.json").is_file():
+            results = json.loads((run_dir / "results.json").read_text())
+            entry["pending"] = False
+            entry["methods"] = {m: _method(run_dir, m, results, key) for m in methods}
+        out["datasets"].append(entry)
+    return out
+
+
+def write(suite_dir: Path, command: str | None = None) -> dict:
+    """``results.json`` and ``results.md`` of the suite directory (its table now)."""
+    data = table(suite_dir, command)
+    write_json(Path(suite_dir) / "results.json", data)
+    (Path(suite_dir) / "results.md").write_text(markdown(data))
+    return data
+
+
+def _published(p) -> str:
+    mean, std = p
+    return f"{mean:g}" + ("" if std is None else f" ± {std:g}")
+
+
+def markdown(data: dict) -> str:
+    """The suite's Markdown: one row per dataset, a column per method (mean [95 % CI] over the
+    seeds, OGBench's published mean in parentheses), the best published number; under it the
+    budgets as shares of the published budget and the command."""
+    methods = data["methods"]
+    lines = ["| dataset | " + " | ".join(methods) + " | best published |", "|---" * (len(methods) + 2) + "|"]
+    budgets: dict[str, set] = {m: set() for m in methods}
+    shares: dict[str, set] = {m: set() for m in methods}
+    for d in data["datasets"]:
+        cells = []
+        for m in methods:
+            r = None if d["pending"] else d["methods"].get(m)
+            ours = "pending" if d["pending"] else ("–" if not r or not r["rate"] else format_ci(r["rate"]))
+            if r and r["rate"] and len(r["seeds"]) == 1:
+                ours += " (1 seed)"
+            pub = d["published"].get(m)
+            cells.append(ours + ("" if pub is None else f" ({pub[0]:g})"))
+            if r and r["steps"]:
+                steps, batch = r["steps"]
+                budgets[m].add(f"{steps:,} x {batch}")
+                if d["published_budget"]:
+                    p_steps, p_batch = d["published_budget"]
+                    shares[m].add(f"{100 * steps * batch / (p_steps * p_batch):.0f} %")
+        best = max(d["published"].items(), key=lambda kv: kv[1][0], default=None)
+        best_text = "–" if best is None else f"{best[0].upper()} {_published(best[1])}"
+        lines.append(f"| {d['dataset']} | " + " | ".join(cells) + f" | {best_text} |")
+    seeds = ", ".join(map(str, data["seeds"]))
+    source = next((d["published_source"] for d in data["datasets"] if d["published_source"]), "")
+    budget = "; ".join(f"{m} {' / '.join(sorted(budgets[m]))} ({' / '.join(sorted(shares[m]))} of the "
+                       "published rows)" for m in methods if budgets[m])
+    lines += ["", f"Success over OGBench's 5 tasks x 50 episodes, seeds {seeds}: mean [{data['ci']}]; in "
+              f"parentheses the method's published mean ({source}, at 1M steps x 1024).  Budget (gradient "
+              f"steps x batch): {budget or '–'}.  Written by `{data['command']}`."]
+    return "\n".join(lines) + "\n"
