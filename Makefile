@@ -3,6 +3,7 @@
 # stamp file makes re-runs skip the install unless pyproject.toml changed.
 # `make train` resumes its run directory: a finished run is only re-evaluated;
 # ARGS="--overwrite" starts it afresh, RUN=runs/other uses another directory.
+# `make benchmark` runs OGBench's pointmaze suite (SEEDS=3, BENCH_METHODS=lazy,gcivl,...).
 # TASK=arm (or arm-long: the disk anywhere, long-horizon task too) trains the arm
 # (joint-space pushing) in runs/$(TASK), resuming it as `make train` does; `make study
 # TASK=arm METHODS=lazy,iql,td3bc` studies any task and methods.
@@ -24,7 +25,10 @@ SEEDS ?= 8
 METHODS ?= lazy
 STUDY ?= $(if $(filter push,$(TASK)),runs/study_paper,runs/study_$(TASK))
 
-.PHONY: train test bench eval study clean
+SUITE ?= ogbench-pointmaze
+BENCH_METHODS ?= lazy
+
+.PHONY: train test bench benchmark eval study clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -37,6 +41,11 @@ train: $(STAMP)
 
 study: $(STAMP)
 	$(PY) -m lazyq_jax study --task $(TASK) --preset paper --seeds $(SEEDS) --methods $(METHODS) --run-dir $(STUDY) --resume $(ARGS)
+
+# Every dataset of a benchmark suite (OGBench's eight pointmaze datasets), resumably, into
+# runs/bench_$(SUITE); its table: runs/bench_$(SUITE)/results.md.
+benchmark: $(STAMP)
+	$(PY) -m lazyq_jax benchmark $(SUITE) --seeds $(if $(filter command line,$(origin SEEDS)),$(SEEDS),3) --methods $(BENCH_METHODS) $(ARGS)
 
 eval: $(STAMP)
 	$(PY) -m lazyq_jax evaluate --run-dir $(RUN) $(ARGS)
