@@ -35,6 +35,7 @@ from lazyq_jax.agents.base import Problem
 from lazyq_jax.config import Config
 from lazyq_jax.keys import purpose_key
 from lazyq_jax.tasks.base import CORRECT, NOT_PUSHED, Evaluation, Rollouts, Task, seed_acts
+from lazyq_jax.tasks.cube import plots
 from lazyq_jax.tasks.cube.config import CubeCollectConfig, CubeEvalConfig, check, presets
 from lazyq_jax.tasks.cube.dataset import load_npz, play, save_npz
 from lazyq_jax.tasks.cube.env import (ACTION_DIM, N_TASKS, OBS, OBS_DIM, EpisodeBatch, cube_position,
@@ -82,7 +83,7 @@ def goal_of(goal_obs: np.ndarray, goal_rep: str) -> np.ndarray:
 def _shared_play(episodes: int, steps: int, noise: float, smoothing: float, p_random: float,
                  data_seed: int) -> dict:
     return play(np.random.default_rng(data_seed), episodes, steps, noise, smoothing, p_random,
-                processes=_processes(episodes, steps), progress=True)
+                processes=_processes(episodes, steps))
 
 
 def _processes(episodes: int, steps: int) -> int:
@@ -243,4 +244,5 @@ class CubeTask(Task):
 
     def figures(self, out_dir: Path, result: dict, rollouts: dict, config: Config,
                 value_fn: Callable | None = None) -> list[Path]:
-        return []
+        out_dir.mkdir(parents=True, exist_ok=True)
+        return [plots.rollouts_figure(rollouts["tasks"], result, out_dir / "cube_rollouts.png")]

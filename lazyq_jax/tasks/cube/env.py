@@ -17,8 +17,10 @@ steps an episode by pointing a worker's env at that episode's ``MjData`` and ran
 state (``qpos, qvel``, the cube's target in ``mocap_pos``, the solver's warm start, ``time``)
 and the env's random stream; the Python attributes ``step`` reads (``_success``, ``_prev_qpos``,
 ``_target_effector_pose``) are recomputed by every step before they are read, and the IK
-controller starts every solve from the current joints.  So an episode's steps equal a dedicated
-OGBench env's bit for bit (tests/test_cube.py), whatever the batch and the worker.
+controller starts every solve from the current joints.  So an episode's steps are a dedicated
+OGBench env's, whatever the batch and the worker (tests/test_cube.py: equal to 1e-9 in
+observation units; the rounding-level gap, 1e-17 to 1e-14, comes from OGBench's unseeded goal
+settling below).
 
 One change to OGBench's env: ``reset`` in task mode settles the goal scene with two random
 actions from ``self.action_space.sample()``, a fresh, unseeded ``Box`` on every access, so
