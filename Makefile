@@ -3,7 +3,7 @@
 # stamp file makes re-runs skip the install unless pyproject.toml changed.
 # `make train` resumes its run directory: a finished run is only re-evaluated;
 # ARGS="--overwrite" starts it afresh, RUN=runs/other uses another directory.
-# `make benchmark` runs OGBench's pointmaze suite (SEEDS=3, BENCH_METHODS=lazy,gcivl,...).
+# `make benchmark` runs OGBench's pointmaze suite (SEEDS default 3; BENCH_METHODS default lazy, e.g. lazy,gcivl,hiql).
 # TASK=arm (or arm-long: the disk anywhere, long-horizon task too) trains the arm
 # (joint-space pushing) in runs/$(TASK), resuming it as `make train` does; `make study
 # TASK=arm METHODS=lazy,iql,td3bc` studies any task and methods.
@@ -45,7 +45,7 @@ study: $(STAMP)
 # Every dataset of a benchmark suite (OGBench's eight pointmaze datasets), resumably, into
 # runs/bench_$(SUITE); its table: runs/bench_$(SUITE)/results.md.
 benchmark: $(STAMP)
-	$(PY) -m lazyq_jax benchmark $(SUITE) --seeds $(if $(filter command line,$(origin SEEDS)),$(SEEDS),3) --methods $(BENCH_METHODS) $(ARGS)
+	$(PY) -m lazyq_jax benchmark $(SUITE) --seeds $(if $(filter command line environment,$(origin SEEDS)),$(SEEDS),3) --methods $(BENCH_METHODS) $(ARGS)
 
 eval: $(STAMP)
 	$(PY) -m lazyq_jax evaluate --run-dir $(RUN) $(ARGS)

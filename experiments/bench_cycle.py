@@ -44,7 +44,8 @@ def dataset(path: Path, task, config) -> Transitions:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--data", type=Path, default=Path("/tmp/lazyq_bench_pointmaze0.npz"))
+    ap.add_argument("--data", type=Path, default=None,
+                    help="the data's cache file (default /tmp/lazyq_bench_<task>_<episodes>.npz)")
     ap.add_argument("--task", default="pointmaze", help="a pointmaze dataset's task (default medium navigate)")
     ap.add_argument("--episodes", type=int, default=None, help="fewer episodes (a quick look)")
     args = ap.parse_args()
@@ -52,7 +53,8 @@ def main() -> None:
     if args.episodes:
         config = dataclasses.replace(config, collect=dataclasses.replace(config.collect,
                                                                         episodes=args.episodes))
-    data = jax.tree.map(jnp.asarray, dataset(args.data, task, config))
+    cache = args.data or Path(f"/tmp/lazyq_bench_{args.task}_{config.collect.episodes}.npz")
+    data = jax.tree.map(jnp.asarray, dataset(cache, task, config))
     agent = agents.make("lazy", LazyConfig(train=config.train, neighbours=config.neighbours),
                         problem=task.problem(config))
     aux = agent.prepare(0, data, data.size, 0)

@@ -110,8 +110,11 @@ def cmd_benchmark(args) -> None:
     run_dir = args.run_dir or Path("runs") / f"bench_{args.suite}"
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     command = " ".join(["python -m lazyq_jax", *sys.argv[1:]]) if sys.argv[1:2] == ["benchmark"] else ""
-    data = benchmark(args.suite, run_dir, seeds, _methods(args.methods),
-                     datasets=_methods(args.datasets) if args.datasets else None, preset=args.preset,
+    datasets = None if args.datasets is None else _methods(args.datasets)
+    if datasets == []:
+        raise ConfigError(f"--datasets {args.datasets!r} names no dataset; leave it out for every dataset "
+                          f"of {args.suite}")
+    data = benchmark(args.suite, run_dir, seeds, _methods(args.methods), datasets=datasets, preset=args.preset,
                      sets=sets, progress=not args.no_progress, command=command)
     if is_main_process():
         print(f"{len(data['datasets'])} datasets -> {run_dir / 'results.json'}, {run_dir / 'results.md'}")

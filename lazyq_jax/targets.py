@@ -188,8 +188,10 @@ def fit_projection(data: Transitions, neighbours_idx, *, state_offsets: bool = F
     cycle's fits are one gather and one ``[1 + n_a, k]`` product a row
     (:func:`lazyq_jax.local_model.precompute_projection` of the covariates; the offsets'
     coefficients are dropped: only ``alpha`` and ``beta`` enter Eq. 7).  Equal to the direct
-    fit up to float32 rounding (the same centred, ridge-regularised normal equations; only
-    the order of the products differs).  Memory: ``4 (1 + n_a) k`` bytes a row (240 MB for
+    fit up to float32 rounding (the same centred, ridge-regularised normal equations; the
+    direct fit also centres the values ``y``, ``P @ y`` does not, so its rounding grows with
+    ``|mean y|`` against their spread: measured unchanged at values near -200, twice the
+    error at -2000).  Memory: ``4 (1 + n_a) k`` bytes a row (240 MB for
     1M rows, ``k = 20``, ``n_a = 2``)."""
     idx = jnp.asarray(neighbours_idx)
     n_a = data.a.shape[-1]

@@ -3,8 +3,10 @@
 ``make_train(config, action_length)`` returns a :class:`Trainer` of pure functions:
 
 * ``init(key, data) -> TrainState`` (sized from ``data``)
-* ``run_cycle(state, data, idx, n_valid=None, weights=None) -> (state, metrics)``: one cycle
-  (``weights [N, k]``: distance-weighted local fits, ``neighbours.fit_weights``): targets from
+* ``run_cycle(state, data, idx, n_valid=None, weights=None, projection=None) -> (state,
+  metrics)``: one cycle (``weights [N, k]``: distance-weighted local fits,
+  ``neighbours.fit_weights``; ``projection``: the fits' data-only part,
+  :func:`lazyq_jax.targets.fit_projection`, computed once a neighbourhood set): targets from
   the parameters frozen at the start of the cycle (the DQN target network, Eq. 11-12),
   then ``epochs`` epochs of Adam on ``mean((V - Y)^2)`` (Eq. 10) in ``lax.scan``.
   With ``double_dqn`` the targets are Eq. (13)-(14) and are refreshed every epoch:

@@ -26,8 +26,17 @@ def test_plan_and_bad_input(tmp_path):
         bench.plan("ogbench-antmaze")
     with pytest.raises(ConfigError, match="not in suite"):
         bench.plan("ogbench-pointmaze", ["pointmaze-huge-navigate"])
+    with pytest.raises(ConfigError, match="no dataset chosen"):
+        bench.plan("ogbench-pointmaze", [])
     with pytest.raises(RunDirError, match="no suite.json"):
         suite.read_suite(tmp_path)
+    # a misspelt method or a bad seed is refused before suite.json records it
+    for methods, seeds, match in ((["lazy", "gcilv"], [0], "unknown method"), (["lazy"], [-1], "seeds")):
+        with pytest.raises(ConfigError, match=match):
+            bench.benchmark("ogbench-pointmaze", tmp_path / "b", seeds, methods, preset="smoke")
+        assert not (tmp_path / "b" / suite.SUITE_FILE).exists()
+    out = cli("benchmark", "ogbench-pointmaze", "--datasets", ",", "--run-dir", str(tmp_path / "c"))
+    assert out.returncode != 0 and "names no dataset" in out.stderr
 
 
 def test_benchmark_interrupted_resumed_and_reported(tmp_path, monkeypatch):

@@ -12,6 +12,7 @@ import ogbench
 import pytest
 
 from lazyq_jax import tasks
+from lazyq_jax.config import ConfigError, override
 from lazyq_jax.tasks.base import run_protocol, seed_acts
 from lazyq_jax.tasks.pointmaze import get_maze, navigate, oracle_action, stitch, task_protocol
 from lazyq_jax.tasks.pointmaze.config import DATASETS, PointMazeEvalConfig
@@ -94,6 +95,12 @@ def test_giant_layout_and_the_per_dataset_settings():
             assert fields.get("actor_p_randomgoal", 0.0) == (0.5 if recipe == "stitch" else 0.0)
         assert task.method_defaults("gcbc") == {"width": 512, "depth": 4, "batch_size": 1024}
     assert tasks.get("pointmaze-large-stitch-v0") is tasks.get("pointmaze-large-stitch")
+    # a task's data are its dataset's: another maze or recipe through --set is refused, so
+    # the discount and the baselines' flags cannot disagree with the data
+    for name, sets in (("pointmaze-giant-stitch", ["collect.maze=medium"]),
+                       ("pointmaze", ["collect.recipe=stitch"])):
+        with pytest.raises(ConfigError, match="choose the dataset by its task"):
+            tasks.get(name).check(override(tasks.preset(name), sets))
     assert tasks.preset("pointmaze") == dataclasses.replace(papers["pointmaze-medium-navigate"],
                                                             task="pointmaze")
     # giant navigate: 2001-step episodes of one goal after another

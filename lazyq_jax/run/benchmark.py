@@ -20,8 +20,9 @@ from typing import Sequence
 
 from lazyq_jax import tasks
 from lazyq_jax.config import ConfigError, override
+from lazyq_jax.parallel import maybe_initialize_distributed
 from lazyq_jax.run import suite
-from lazyq_jax.run.rundir import RunDirError, locked, write_json
+from lazyq_jax.run.rundir import RunDirError, check_methods, check_seeds, locked, write_json
 from lazyq_jax.run.runner import run
 from lazyq_jax.run.sources import log
 
@@ -31,8 +32,10 @@ def plan(name: str, datasets: Sequence[str] | None = None) -> list[str]:
     if name not in tasks.SUITES:
         raise ConfigError(f"unknown benchmark suite {name!r}; suites: {', '.join(tasks.SUITES)}")
     members = tasks.SUITES[name]
-    if not datasets:
+    if datasets is None:
         return list(members)
+    if not datasets:
+        raise ConfigError(f"no dataset chosen; leave the datasets out for every dataset of {name!r}")
     chosen = [tasks.canonical(d) for d in datasets]
     unknown = [d for d in chosen if d not in members]
     if unknown:
@@ -45,29 +48,31 @@ def benchmark(name: str, run_dir: Path, seeds: Sequence[int], methods: Sequence[
               progress: bool = True, command: str = "") -> dict:
     """Run suite ``name``'s datasets (module docstring); returns the table's data."""
     names = plan(name, datasets)
+    methods = [m.text for m in check_methods(methods)]  # before suite.json records them
+    seeds = list(check_seeds(seeds))
     configs = {}
     for d in names:  # every config checked before anything runs
         configs[d] = override(tasks.preset(d, preset), list(sets))
         tasks.get(d).check(configs[d])
+    maybe_initialize_distributed(configs[names[0]].parallel)  # before anything touches a device
     run_dir = Path(run_dir)
-    meta = {"suite": name, "datasets": names, "methods": list(methods), "seeds": list(seeds),
-            "preset": preset, "sets": list(sets), "command": command}
-    with locked(run_dir):
+    meta = {"suite": name, "datasets": names, "methods": methods, "seeds": seeds,
+            "preset": preset, "sets": sorted(sets), "command": command}
+    with locked(run_dir):  # held throughout: a second benchmark of this directory is refused at once
         path = run_dir / suite.SUITE_FILE
         if path.exists():
             old = json.loads(path.read_text())
+            old["sets"] = sorted(old.get("sets", []))
             differ = [k for k in ("suite", "seeds", "preset", "sets") if old.get(k) != meta[k]]
             if differ:
-                raise RunDirError(f"{run_dir} holds a benchmark whose {', '.join(differ)} differ "
-                                  f"({', '.join(f'{k}: {old.get(k)}' for k in differ)}); resume it with the "
-                                  "same settings or choose another --run-dir")
+                raise RunDirError(f"{run_dir} holds a benchmark whose {', '.join(differ)} differ ("
+                                  + "; ".join(f"{k}: {old.get(k)} there, {meta[k]} now" for k in differ)
+                                  + "); resume it with the same settings or choose another --run-dir")
             meta["datasets"] = [d for d in tasks.SUITES[name] if d in set(old["datasets"]) | set(names)]
             meta["methods"] = list(dict.fromkeys([*old["methods"], *methods]))
         write_json(path, meta)
-    for i, d in enumerate(names):
-        log(f"benchmark {name}: dataset {i + 1}/{len(names)}: {d}")
-        run(configs[d], run_dir / d, seeds=list(seeds), methods=list(methods), resume=True,
-            progress=progress)
-        with locked(run_dir):
+        for i, d in enumerate(names):
+            log(f"benchmark {name}: dataset {i + 1}/{len(names)}: {d}")
+            run(configs[d], run_dir / d, seeds=seeds, methods=methods, resume=True, progress=progress)
             data = suite.write(run_dir, command)
     return data

@@ -60,16 +60,19 @@ def table(suite_dir: Path, command: str | None = None) -> dict:
     suite_dir = Path(suite_dir)
     meta = read_suite(suite_dir)
     methods = list(meta["methods"])
-    out = {"suite": meta["suite"], "ci": CI, "methods": methods, "seeds": meta["seeds"],
+    out = {"suite": meta["suite"], "ci": CI, "rate_label": "", "methods": methods, "seeds": meta["seeds"],
            "command": command or meta.get("command", ""), "datasets": []}
     for name in meta["datasets"]:
         task = tasks.get(name)
         key = task.rates[0][0]
+        out["rate_label"] = out["rate_label"] or dict(task.rates).get(key, key)
         entry = {"dataset": name, "rate": key, "published": {m: list(v) for m, v in task.published.items()},
                  "published_source": task.published_source,
                  "published_budget": list(task.published_budget) if task.published_budget else None,
                  "methods": {}, "pending": True}
         run_dir = suite_dir / name
+        if (run_dir / "run.json").is_file():
+            entry["eval"] = json.loads((run_dir / "run.json").read_text())["config"].get("eval")
         if (run_dir / "results.json").is_file():
             results = json.loads((run_dir / "results.json").read_text())
             entry["pending"] = False
@@ -106,7 +109,7 @@ def markdown(data: dict) -> str:
             ours = "pending" if d["pending"] else ("–" if not r or not r["rate"] else format_ci(r["rate"]))
             if r and r["rate"] and len(r["seeds"]) == 1:
                 ours += " (1 seed)"
-            pub = d["published"].get(m)
+            pub = d["published"].get(parse_method(m).name)
             cells.append(ours + ("" if pub is None else f" ({pub[0]:g})"))
             if r and r["steps"]:
                 steps, batch = r["steps"]
@@ -119,9 +122,16 @@ def markdown(data: dict) -> str:
         lines.append(f"| {d['dataset']} | " + " | ".join(cells) + f" | {best_text} |")
     seeds = ", ".join(map(str, data["seeds"]))
     source = next((d["published_source"] for d in data["datasets"] if d["published_source"]), "")
+    p_budget = next((d["published_budget"] for d in data["datasets"] if d["published_budget"]), None)
     budget = "; ".join(f"{m} {' / '.join(sorted(budgets[m]))} ({' / '.join(sorted(shares[m]))} of the "
                        "published rows)" for m in methods if budgets[m])
-    lines += ["", f"Success over OGBench's 5 tasks x 50 episodes, seeds {seeds}: mean [{data['ci']}]; in "
-              f"parentheses the method's published mean ({source}, at 1M steps x 1024).  Budget (gradient "
+    evals = {json.dumps(d.get("eval"), sort_keys=True) for d in data["datasets"] if d.get("eval")}
+    protocol = ("; evaluation: " + ", ".join(f"{k} {v}" for k, v in json.loads(evals.pop()).items() if k != "seed")
+                if len(evals) == 1 else "; evaluation: each dataset's (its run.json)")
+    label = data.get("rate_label") or "success"
+    lines += ["", f"{label[:1].upper() + label[1:]} per dataset, seeds {seeds}: mean "
+              f"[{data['ci']}]{protocol}.  In parentheses the method's published mean; best published: "
+              f"the highest published mean ± std ({source or 'none'}"
+              + (f"; published budget {p_budget[0]:,} steps x {p_budget[1]}" if p_budget else "") + ").  Budget (gradient "
               f"steps x batch): {budget or '–'}.  Written by `{data['command']}`."]
     return "\n".join(lines) + "\n"

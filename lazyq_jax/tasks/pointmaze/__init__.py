@@ -24,7 +24,7 @@ import numpy as np
 from jax.sharding import Mesh
 
 from lazyq_jax.agents.base import Problem
-from lazyq_jax.config import Config
+from lazyq_jax.config import Config, ConfigError
 from lazyq_jax.data import DatasetError
 from lazyq_jax.keys import purpose_key
 from lazyq_jax.tasks.base import (CORRECT, NOT_PUSHED, Evaluation, Protocol, Task, make_protocol,
@@ -195,6 +195,12 @@ class PointMazeTask(Task):
     def check(self, config: Config) -> None:
         super().check(config)
         check(config)
+        c = config.collect
+        if (c.maze, c.recipe) != (self.maze, self.recipe):
+            raise ConfigError(f"task {self.name} is OGBench's {self.maze} maze with {self.recipe} data, "
+                              f"but collect.maze={c.maze!r}, collect.recipe={c.recipe!r}: choose the "
+                              f"dataset by its task, --task {dataset_id(c.maze, c.recipe)} (its discount "
+                              "and the baselines' flags follow the task)")
 
     def problem(self, config: Config) -> Problem:
         return Problem(action_length=1.0, action_set="box", state_scale=1.0, state_goal_reward=True)

@@ -9,7 +9,8 @@ here (shared/DESIGN.md §8-§9, issue 59) state them; teleport's numbers were no
 
 from __future__ import annotations
 
-OGBENCH = "OGBench (Park et al. 2024), 8 seeds"
+OGBENCH = ("OGBench's agents from OGBench (Park et al. 2024), 8 seeds; SAW (Zhou & Kao 2025) and S2AW "
+           "(Zhou, Dong & Kao) from their papers")
 LATER = ("saw", "s2aw")  # not OGBench's agents: published numbers only
 
 # dataset -> method -> (mean %, std % or None)
