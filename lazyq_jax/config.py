@@ -52,12 +52,14 @@ def _positive(obj: Any, *names: str) -> None:
 LOCAL_MODELS = ("action", "action+state", "action+state+goal")
 FIT_WEIGHTS = ("uniform", "epanechnikov")
 NO_MODEL_ACTIONS = ("zero", "random")
+GREEDY_ACTIONS = ("set", "data")
 BOOTSTRAP_GOALS = ("neighbour", "row")
 
 
 #: The settings of the lazy policy's step alone (acting, not training): ``evaluate --set``
 #: and :func:`lazyq_jax.load_run` may change them for a trained run.
-POLICY_FIELDS = ("neighbours.max_level", "neighbours.no_model_action", "neighbours.subgoal_steps")
+POLICY_FIELDS = ("neighbours.max_level", "neighbours.no_model_action", "neighbours.subgoal_steps",
+                 "neighbours.greedy")
 
 
 def policy_settings(config: "Config") -> dict:
@@ -99,7 +101,12 @@ class NeighbourConfig:
     each step picks a subgoal among the states the neighbours' trajectories reached ``H``
     steps later, by the trained ``V(w, g)``, and takes Eq. (9)'s step towards it (HIQL's
     hierarchy, with the data's states as the subgoals); it needs trajectory data whose goals
-    are states, changes acting only, and costs ``3k + 1`` network evaluations a step."""
+    are states, changes acting only, and costs ``3k + 1`` network evaluations a step.
+    ``greedy``: Eq. (9)'s argmax of the local model ``beta . a`` over the action ``"set"``
+    (the paper's: a corner of the box, the ball's boundary) or over the neighbourhood's own
+    actions (``"data"``: the neighbour's action the fit values most; the step stays among
+    actions the data took, where the linear model was fitted, as IQL-style in-sample
+    maximisation does for targets; ``beta = 0`` is still no action).  Acting only."""
 
     k: int = 20
     radius_s: float = 0.06
@@ -112,8 +119,11 @@ class NeighbourConfig:
     fit_weights: str = "uniform"
     no_model_action: str = "zero"
     subgoal_steps: int = 0
+    greedy: str = "set"
 
     def __post_init__(self) -> None:
+        _check(self.greedy in GREEDY_ACTIONS,
+               f"NeighbourConfig.greedy must be one of {GREEDY_ACTIONS}, got {self.greedy!r}")
         _check(self.fit_weights in FIT_WEIGHTS,
                f"NeighbourConfig.fit_weights must be one of {FIT_WEIGHTS}, got {self.fit_weights!r}")
         _check(self.no_model_action in NO_MODEL_ACTIONS,

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from lazyq_jax.config import NO_MODEL_ACTIONS
+from lazyq_jax.config import GREEDY_ACTIONS, NO_MODEL_ACTIONS
 from lazyq_jax.local_model import (boundary_action, epanechnikov_weights, fit_local_linear, greedy_action,
                                    neighbour_offsets)
 from lazyq_jax.neighbours.query import PolicyIndex, build_policy_index, query_policy
@@ -55,6 +55,11 @@ class LazyPolicy:
     # and values the neighbours per step, as with bootstrap_goal="row"
     subgoal_steps: int = struct.field(pytree_node=False, default=0)
     traj_last: jax.Array | None = None
+    # psi(g): where the query's goal is compared with the index's goals (Problem.goal_features;
+    # the index and the kernel then hold psi of the dataset's goals)
+    goal_features: Callable | None = struct.field(pytree_node=False, default=None)
+    # Eq. (9)'s argmax over the action "set" or over the neighbourhood's actions ("data")
+    greedy: str = struct.field(pytree_node=False, default="set")
 
 
 def policy_index(data_s, data_g, *, k: int, radius_s: float, radius_g: float, growth: float,
@@ -71,12 +76,13 @@ def policy_index(data_s, data_g, *, k: int, radius_s: float, radius_g: float, gr
 def make_lazy_policy(value_fn: Callable, data: Transitions, *, gamma: float, action_length: float,
                      action_set: str = "ball", k: int = 20, radius_s: float = 0.06,
                      radius_g: float = 0.1, growth: float = 2 ** (1 / 3), max_level: int = 8,
-                     no_model_action: str = "zero") -> LazyPolicy:
+                     no_model_action: str = "zero", greedy: str = "set") -> LazyPolicy:
     """Precompute what the policy needs from a trained ``value_fn(s, g)`` and its dataset.
 
     The neighbourhood semantics are those of training (§V-A-2); ``max_level`` bounds
     the growths a policy query may use, ``no_model_action`` what a step does where the
-    local model prefers no action (see :func:`lazy_policy`).  Any space: states
+    local model prefers no action and ``greedy`` where Eq. (9) maximises (see
+    :func:`lazy_policy`).  Any space: states
     ``[N, d_s]``, goals ``[N]`` (angles), ``[N, d_g]`` or ``None``; the index is the bounded
     per-step query of :mod:`lazyq_jax.neighbours.query`.
     """
@@ -85,8 +91,10 @@ def make_lazy_policy(value_fn: Callable, data: Transitions, *, gamma: float, act
     values = jax.jit(bootstrap_table, static_argnums=(0,))(value_fn, data, gamma)
     if no_model_action not in NO_MODEL_ACTIONS:
         raise ValueError(f"no_model_action must be one of {NO_MODEL_ACTIONS}, got {no_model_action!r}")
+    if greedy not in GREEDY_ACTIONS:
+        raise ValueError(f"greedy must be one of {GREEDY_ACTIONS}, got {greedy!r}")
     return LazyPolicy(index, data.a, values, jnp.float32(action_length), action_set,
-                      no_model_action=no_model_action)
+                      no_model_action=no_model_action, greedy=greedy)
 
 
 def neighbour_values(policy: LazyPolicy, rows: jax.Array, g) -> jax.Array:
@@ -130,15 +138,26 @@ def lazy_subgoals(policy: LazyPolicy, rows: jax.Array, valid: jax.Array, s: jax.
     return jnp.where(at_goal[:, None], g, w)
 
 
+def in_sample_greedy(actions: jax.Array, valid: jax.Array, beta: jax.Array) -> jax.Array:
+    """Eq. (9) restricted to the neighbourhood: the action ``a_j [B, n_a]`` of the largest
+    ``beta . a_j`` among the valid neighbours ``actions [B, k, n_a]`` (``neighbours.greedy=
+    "data"``); zero where ``beta = 0`` (every action equally good: no preference)."""
+    score = jnp.where(valid, jnp.einsum("bkn,bn->bk", actions, beta), -jnp.inf)
+    best = jnp.take_along_axis(actions, jnp.argmax(score, axis=-1)[:, None, None], axis=1)[:, 0]
+    return jnp.where(jnp.any(beta != 0, axis=-1, keepdims=True), best, 0.0)
+
+
 def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):
     """Greedy actions (Eq. 9) for a batch of states ``s[B, d_s]``, goals ``g[B]`` /
     ``g[B, d_g]`` / ``None`` (as the dataset's).
 
     For each query: its neighbourhood in the dataset (distances between ``policy.features``
-    of the states, if the policy has a feature map), the local fit
+    of the states and ``policy.goal_features`` of the goals, where the policy has them), the
+    local fit
     ``y_j ~ alpha + beta.a_j`` (Eq. 5-6; weighted by distance with a ``policy.kernel``), and
     the maximiser of ``beta . a`` over the
-    action set (:func:`lazyq_jax.local_model.greedy_action`).  Pure and jittable (use
+    action set (:func:`lazyq_jax.local_model.greedy_action`), or with ``policy.greedy ==
+    "data"`` over the neighbourhood's actions (:func:`in_sample_greedy`).  Pure and jittable (use
     it inside ``lax.scan`` rollouts).  A query with no neighbourhood within
     ``max_level`` growths (far outside the data) has ``found = False``.  Where the model prefers no action (no neighbourhood, or ``beta = 0``: every neighbour
     took the same action) the action is zero, or with ``policy.no_model_action ==
@@ -152,7 +171,8 @@ def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):
     Returns ``(actions[B, n_a], beta[B, n_a], found[B])``.
     """
     x = s if policy.features is None else policy.features(s)
-    nb = query_policy(policy.index, key, x, None if policy.value_apply is not None else g)
+    gq = g if policy.goal_features is None or g is None else policy.goal_features(g)
+    nb = query_policy(policy.index, key, x, None if policy.value_apply is not None else gq)
     rows = jnp.maximum(nb.idx, 0)
     if policy.subgoal_steps > 0:
         g = lazy_subgoals(policy, rows, nb.idx >= 0, s, g)
@@ -163,12 +183,16 @@ def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):
     if policy.kernel is not None:
         kn = policy.kernel
         weights = epanechnikov_weights(kn.x[rows], x, None if kn.goals is None else kn.goals[rows],
-                                       None if kn.goals is None else g, nb.level,
+                                       None if kn.goals is None else gq, nb.level,
                                        radius_s=kn.radius_s, radius_g=kn.radius_g, growth=kn.growth)
     _, beta = fit_local_linear(policy.actions[rows], neighbour_values(policy, rows, g), weights,
                                offsets=offsets)
     found = nb.level >= 0
-    action = jnp.where(found[:, None], greedy_action(beta, policy.action_length, policy.action_set), 0.0)
+    if policy.greedy == "data":
+        step = in_sample_greedy(policy.actions[rows], nb.idx >= 0, beta)
+    else:
+        step = greedy_action(beta, policy.action_length, policy.action_set)
+    action = jnp.where(found[:, None], step, 0.0)
     if policy.no_model_action == "random":
         undecided = jnp.all(action == 0, axis=-1)
         draw = boundary_action(jax.random.fold_in(key, 1), action.shape, policy.action_length,

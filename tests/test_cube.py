@@ -254,6 +254,10 @@ def test_feature_maps_by_hand():
     # and the slices on a made-up observation
     s = jnp.arange(28.0)[None]
     np.testing.assert_array_equal(np.asarray(cube_features(s))[0], [12, 13, 14, 17, 19, 20, 21])
+    # lazy Q compares observation goals by their cube position; cube goals are that already
+    task, paper = tasks.get("cube-single-play"), tasks.preset("cube-single-play", "paper")
+    assert task.problem(paper).goal_features is goal_features
+    assert task.problem(override(paper, ["collect.goal_rep=cube"])).goal_features is None
 
 
 @pytest.fixture(scope="module")
@@ -317,7 +321,8 @@ def test_config_is_checked_at_the_boundary():
 
 
 def test_the_task_through_the_cli(tmp_path):
-    """The smoke preset (lazy Q on 4 x 100 play transitions, cube goals) collected, trained and
+    """The smoke preset (lazy Q on 4 x 100 play transitions, 28-D observation goals searched by
+    their cube position) collected, trained and
     evaluated by the CLI: 2 episodes a task, rates in [0, 1], the data cached in the run; and
     evaluated again from the checkpoints to the same outcomes (the episodes' seeds come from
     the evaluation seed, the goal scenes' random steps included)."""

@@ -95,3 +95,32 @@ def test_no_model_action_is_checked():
     with pytest.raises(ValueError, match="no_model_action"):
         make_lazy_policy(lambda x, g: jnp.zeros(x.shape[0]), data, gamma=0.9, action_length=C,
                          no_model_action="noise")
+
+
+def test_the_in_sample_greedy_step_takes_the_best_neighbours_action():
+    """``greedy="data"``: where the neighbourhood is the whole cluster (exactly k points near the
+    origin), the step is the cluster's action of the largest ``beta . a_j``, with ``beta`` of
+    NumPy's float64 least squares of ``[1, a] -> v`` (a data row, bitwise); where beta = 0 and
+    where nothing is found, no action, as with ``"set"``."""
+    rng = np.random.default_rng(1)
+    s_a = rng.uniform(-0.02, 0.02, (K, 3))
+    a_a = rng.uniform(-C, C, (K, 3))
+    v_a = a_a @ U + 0.001 * rng.normal(size=K)
+    s_b = np.array([1.0, 0.0, 0.0]) + rng.uniform(-0.02, 0.02, (K, 3))
+    a_b = np.tile([0.0, 0.0, C], (K, 1))
+    s, a, v = (np.concatenate(x).astype(np.float32) for x in ((s_a, s_b), (a_a, a_b), (v_a, rng.normal(size=K))))
+    index = policy_index(s, None, k=K, radius_s=0.05, radius_g=0.1, growth=2 ** (1 / 3), max_level=3)
+    policy = LazyPolicy(index, jnp.asarray(a), jnp.asarray(v), jnp.float32(C), "box", greedy="data")
+    q = jnp.asarray([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [5.0, 5.0, 5.0]], jnp.float32)
+    act, beta, found = (np.asarray(x) for x in jax.jit(lazy_policy)(policy, jax.random.PRNGKey(0), q, None))
+    np.testing.assert_array_equal(found, [True, True, False])
+    X = np.concatenate([np.ones((K, 1)), a[:K].astype(np.float64)], 1)
+    beta_ref = np.linalg.lstsq(X, v[:K].astype(np.float64), rcond=None)[0][1:]
+    # |beta| ~ |U| ~ 1 from actions ~ c = 0.1 and 8 rows: float32 solves agree to ~1e-4
+    np.testing.assert_allclose(beta[0], beta_ref, rtol=1e-3, atol=1e-3)
+    # (the best two neighbours' scores differ by 0.007, far above float32's error in them)
+    np.testing.assert_array_equal(act[0], a[np.argmax(a[:K] @ beta_ref)])
+    assert np.all(beta[1] == 0)
+    np.testing.assert_array_equal(act[1:], 0.0)
+    with pytest.raises(ConfigError, match="greedy"):
+        NeighbourConfig(greedy="best")

@@ -54,6 +54,11 @@ class Problem:
         grid for 2-D states with angle goals (so that seeds share compiled searches).
       features: ``phi(s [..., d_s]) -> [..., m]``, where lazy Q measures the state
         distance of its neighbourhoods (None: the state itself).
+      goal_features: ``psi(g [..., d_g]) -> [..., m_g]``, where lazy Q measures the goal
+        distance of its neighbourhoods, in training and in the policy's queries (None: the
+        goal itself).  For goals too wide for a neighbour search (OGBench's 28-D goal
+        observations: ``psi`` = what success reads of them, the cube's position).  The
+        networks and the local fits' values still see the whole goal.
       state_goal_reward: the reward and termination of a transition are functions of its
         state and goal alone (OGBench's relabelled goal reaching: -1 until the goal is the
         state), so a neighbour's next state may be valued at another row's goal with that
@@ -66,6 +71,7 @@ class Problem:
     probes: tuple | None = None
     search_bounds: tuple[float, float, float, float] | None = None
     features: Callable | None = None
+    goal_features: Callable | None = None
     state_goal_reward: bool = False
 
     def __post_init__(self) -> None:

@@ -215,7 +215,7 @@ class LazyAgent(Agent):
             self.check_target_steps(data.replace(**goals), n_valid)
         data_g = None if self.row_goal else goals.get("g", data.g)  # row goals: state space only
         nc, n = self.config.neighbours, int(n_valid)
-        x = self.search_space(data.s)
+        x, data_g = self.search_space(data.s), self.goal_space(data_g)
         if is_grid_space(x, data_g):
             index = build_index(np.asarray(x[:n]), np.asarray(data_g[:n]), k=nc.k,
                                 radius_s=nc.radius_s, radius_g=nc.radius_g, growth=nc.growth,
@@ -250,6 +250,12 @@ class LazyAgent(Agent):
         (the task's feature map, computed in float32 on the host's device), else ``s``."""
         phi = self.problem.features
         return s if phi is None else np.asarray(jax.jit(phi)(jnp.asarray(s, jnp.float32)))
+
+    def goal_space(self, g):
+        """Where the goal distance of the neighbourhoods is measured:
+        ``problem.goal_features(g)`` (float32, on the host's device), else ``g``."""
+        psi = self.problem.goal_features
+        return g if psi is None or g is None else np.asarray(jax.jit(psi)(jnp.asarray(g, jnp.float32)))
 
     def run_block(self, state, data: Transitions, aux: Neighbourhoods, n_valid=None):
         data = aux.on(data)
@@ -289,6 +295,8 @@ class LazyAgent(Agent):
         nc, n_seeds = self.config.neighbours, int(np.shape(n_valid)[0])
         xs = [self.search_space(data.s[i]) for i in range(n_seeds)]
         search_g = None if self.per_step else data.g
+        if search_g is not None and self.problem.goal_features is not None:
+            search_g = jnp.stack([self.goal_space(data.g[i]) for i in range(n_seeds)])
         indices = [policy_index(xs[i], None if search_g is None else np.asarray(search_g[i]),
                                 k=nc.k, radius_s=nc.radius_s, radius_g=nc.radius_g, growth=nc.growth,
                                 max_level=nc.max_level, n_valid=int(n_valid[i]))
@@ -319,7 +327,8 @@ class LazyAgent(Agent):
         return LazyPolicy(index, data.a, values, length, self.problem.action_set, self.problem.features,
                           states, goals, kernel, nc.no_model_action, next_states, value_vars,
                           self.value_apply, self.subgoal_steps,
-                          data.traj_last if self.subgoal_steps else None)
+                          data.traj_last if self.subgoal_steps else None,
+                          None if self.per_step else self.problem.goal_features, nc.greedy)
 
     def act(self, policy: LazyPolicy):
         return lambda key, s, g: lazy_policy(policy, key, s, g)[0]

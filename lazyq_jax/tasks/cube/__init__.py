@@ -68,8 +68,9 @@ def cube_features(s):
 def goal_features(g):
     """What of a goal observation ``g [..., 28]`` success reads: its cube position ``[..., 3]``
     (observation units; equal to OGBench's oracle goal representation ``compute_oracle_observation``).
-    The goal side of :func:`cube_features` (the lazy agent has no goal feature map yet: with
-    ``collect.goal_rep="cube"`` the data's goals are these already)."""
+    The goal side of :func:`cube_features`: lazy Q's neighbourhoods compare goal observations
+    by it (``Problem.goal_features``; with ``collect.goal_rep="cube"`` the goals are these
+    already)."""
     return g[..., OBS["cube_pos"]]
 
 
@@ -191,9 +192,11 @@ class CubeTask(Task):
         check(config)
 
     def problem(self, config: Config) -> Problem:
+        observation_goals = config.collect.goal_rep == "observation"
         return Problem(action_length=1.0, action_set="box", state_scale=1.0,
                        features=self.features(config),
-                       state_goal_reward=config.collect.goal_rep == "observation")
+                       goal_features=goal_features if observation_goals else None,
+                       state_goal_reward=observation_goals)
 
     def feature_maps(self, config: Config) -> dict:
         return {"state": None, "cube": cube_features}

@@ -111,11 +111,9 @@ def check(config: Config) -> None:
 
 # Lazy Q on the cube: not tuned (issue 58's second half).  Neighbourhoods in the "cube" feature
 # space (effector position, gripper opening, cube position, in observation units: positions
-# x 10, so 0.5 is 5 cm; the opening x 3, so 0.5 is a sixth of its range) with the goal's cube
-# position (0.4: the success radius 4 cm).  The "observation" goals (28-D) are outside the
-# neighbour search's reach (d_g <= 10) until goals get a feature map too; the presets that run
-# lazy Q use goal_rep="cube".  One-step targets: train.target_steps > 1 and
-# neighbours.subgoal_steps need goals that are states.
+# x 10, so 0.5 is 5 cm; the opening x 3, so 0.5 is a sixth of its range) and, for goals, the
+# goal's cube position (the task's Problem.goal_features with observation goals; 0.4: the
+# success radius 4 cm); the networks see the whole 28-D goal.
 _NEIGHBOURS = NeighbourConfig(k=20, radius_s=0.5, radius_g=0.4, max_level=8, features="cube")
 _TRAIN = TrainConfig(gamma=0.99, cycles=100, epochs=1, batch_size=4096, learning_rate=1e-3,
                      width=256, depth=4)
@@ -125,15 +123,14 @@ _SMOKE_TRAIN = TrainConfig(gamma=0.99, cycles=2, epochs=1, batch_size=256, targe
 
 def presets() -> dict[str, Config]:
     """``paper`` (OGBench's benchmark: its play data, 1000 x 1001, observation goals, the full
-    evaluation; for OGBench's agents; lazy Q needs goal features there, see above),
-    ``oracle-goals`` (the same with the cube's position as the goal: lazy Q runs) and ``smoke``
-    (a tiny end-to-end run of lazy Q: 4 episodes of 101 steps, cube goals, 2 episodes a task of
-    at most 20 steps)."""
+    evaluation), ``oracle-goals`` (the same with the cube's position as the goal, OGBench's
+    oracle representation) and ``smoke`` (a tiny end-to-end run of lazy Q: 4 episodes of 101
+    steps, observation goals, 2 episodes a task of at most 20 steps)."""
     paper = Config(task="cube-single-play", collect=CubeCollectConfig(), eval=CubeEvalConfig(),
                    neighbours=_NEIGHBOURS, train=_TRAIN)
     oracle = dataclasses.replace(paper, collect=CubeCollectConfig(goal_rep="cube"))
     smoke = dataclasses.replace(
-        paper, collect=CubeCollectConfig(episodes=4, episode_steps=101, goal_rep="cube"),
+        paper, collect=CubeCollectConfig(episodes=4, episode_steps=101),
         eval=CubeEvalConfig(episodes_per_task=2, max_steps=20), train=_SMOKE_TRAIN,
         neighbours=dataclasses.replace(_NEIGHBOURS, k=8, radius_s=1.0, radius_g=1.0))
     return {"paper": paper, "oracle-goals": oracle, "smoke": smoke}
