@@ -14,7 +14,14 @@ reports
   cube moves between ``s_t`` and ``s_{t+h}`` (the ones a manipulation value must get right:
   a goal that only moves the arm is the easy half), with 95 % bootstrap intervals.
 
-    .venv/bin/python experiments/cube_value.py --runs runs/cube:lazy runs/cube_gcivl:gcivl:width=256
+``--lazy-policy RUN_DIR`` then separates the value from lazy Q's operator: lazy Q's policy of
+that run (its neighbourhoods, Eq. 9, its acting settings; ``--set`` changes them) acts with
+each run's V in its table ``y_j = r_j + gamma (1 - done_j) V(s'_j, g_j)``, evaluated by the
+task's protocol (OGBench's 5 tasks x ``eval.episodes_per_task``; seed 0's episodes).  If
+another agent's V makes lazy Q's step succeed, lazy Q's V is what bounds it; if not, the step.
+
+    .venv/bin/python experiments/cube_value.py --runs runs/cube:lazy runs/cube_gcivl:gcivl:width=256 \
+        --lazy-policy runs/cube --set neighbours.greedy=data
 """
 
 from __future__ import annotations
@@ -27,7 +34,9 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.stats import spearmanr
 
+from lazyq_jax.parallel import over_seeds
 from lazyq_jax.run import load_run
+from lazyq_jax.targets import bootstrap_table
 from lazyq_jax.tasks.cube.env import OBS
 
 BANDS = (1, 3, 10, 30, 100, 300, 1000)
@@ -50,14 +59,38 @@ def bootstrap_spearman(v, h, rng, reps=200):
     return float(rho), [float(np.quantile(draws, 0.025)), float(np.quantile(draws, 0.975))]
 
 
+def v_fn_of(loaded):
+    """The trained ``V(s, g)`` of a loaded run's first seed."""
+    return loaded.agent.value_fn(loaded.state())
+
+
+def act_with(lazy, v) -> dict:
+    """Seed 0's rates of lazy Q's policy (run ``lazy``) with the table of the value ``v``."""
+    sd, agent, gamma = lazy.data, lazy.agent, lazy.config.train.gamma
+    one = lambda tree: jax.tree.map(lambda x: x[:1], tree)
+    policy = agent.policies(one(lazy.states), one(sd.stacked), sd.n_valid[:1])
+    if policy.value_apply is not None:
+        raise SystemExit("--lazy-policy: acting settings that value neighbours per step "
+                         "(subgoal_steps, bootstrap_goal='row') call lazy Q's own network; use a table policy")
+    values = over_seeds(lambda d: bootstrap_table(v, d, gamma), 1)(one(sd.stacked))
+    policy = policy.replace(values=values)
+    ev = lazy.task.evaluate(agent.act, policy, lazy.config, [lazy.seeds[0]])
+    return lazy.task.seed_rates(ev.per_seed[0])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--runs", nargs="+", required=True, help="RUN_DIR:METHOD (method default lazy)")
     ap.add_argument("--pairs", type=int, default=20000)
     ap.add_argument("--max-h", type=int, default=1000)
     ap.add_argument("--out", default=None, help="write the numbers as JSON here")
+    ap.add_argument("--lazy-policy", default=None, metavar="RUN_DIR",
+                    help="also act with lazy Q's policy of this run on each run's V")
+    ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="eval.* and lazy Q's acting settings for --lazy-policy")
     args = ap.parse_args()
     out = {}
+    lazy = load_run(args.lazy_policy, "lazy", args.set) if args.lazy_policy else None
     for spec in args.runs:
         run_dir, _, method = spec.partition(":")
         loaded = load_run(run_dir, method or "lazy")
@@ -87,6 +120,11 @@ def main() -> None:
         print("| h | pairs | mean V | V*(h) |\n|---|---|---|---|")
         for r in by_h:
             print(f"| {r['h']} | {r['pairs']} | {r['V']:.1f} | {r['V*(h)']:.1f} |")
+        if lazy is not None:
+            out[spec]["lazy_policy"] = act_with(lazy, v_fn_of(loaded))
+            rates = out[spec]["lazy_policy"]
+            print(f"lazy Q's policy of {args.lazy_policy} on this V: success {100 * rates['success_rate']:.1f} % ("
+                  + ", ".join(f"task {i} {100 * rates[f'task{i}']:.0f} %" for i in range(1, 6)) + ")")
     if args.out:
         with open(args.out, "w") as f:
             json.dump(out, f, indent=1)
