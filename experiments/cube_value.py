@@ -19,6 +19,9 @@ that run (its neighbourhoods, Eq. 9, its acting settings; ``--set`` changes them
 each run's V in its table ``y_j = r_j + gamma (1 - done_j) V(s'_j, g_j)``, evaluated by the
 task's protocol (OGBench's 5 tasks x ``eval.episodes_per_task``; seed 0's episodes).  If
 another agent's V makes lazy Q's step succeed, lazy Q's V is what bounds it; if not, the step.
+It also reports how linear each V is in the actions of lazy Q's training neighbourhoods
+(``--fit-rows`` of them): the local fit's R^2 of ``y_j ~ alpha + beta . a_j`` (Eq. 5-6) over
+the k neighbours, beside ``n_a / (k - 1)``, what a fit of pure noise scores on average.
 
     .venv/bin/python experiments/cube_value.py --runs runs/cube:lazy runs/cube_gcivl:gcivl:width=256 \
         --lazy-policy runs/cube --set neighbours.greedy=data
@@ -34,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.stats import spearmanr
 
+from lazyq_jax.local_model import fit_local_linear
 from lazyq_jax.parallel import over_seeds
 from lazyq_jax.run import load_run
 from lazyq_jax.targets import bootstrap_table
@@ -64,6 +68,20 @@ def v_fn_of(loaded):
     return loaded.agent.value_fn(loaded.state())
 
 
+def fit_r2(neighbourhoods, v, gamma) -> tuple[float, float]:
+    """Mean R^2 of Eq. (6)'s fits ``y_j ~ alpha + beta . a_j`` over the sampled
+    neighbourhoods ``idx [R, k]`` of ``data``, ``y`` the table of ``v``; and ``n_a / (k - 1)``."""
+    data, idx = neighbourhoods
+    y = np.asarray(bootstrap_table(v, data, gamma))[idx]
+    a = np.asarray(data.a)[idx]
+    alpha, beta = fit_local_linear(jnp.asarray(a), jnp.asarray(y))
+    resid = y - np.asarray(alpha)[:, None] - np.einsum("rkn,rn->rk", a, np.asarray(beta))
+    sst = np.sum((y - y.mean(1, keepdims=True)) ** 2, 1)
+    ok = sst > 0
+    r2 = 1 - np.sum(resid ** 2, 1)[ok] / sst[ok]
+    return float(np.mean(r2)), a.shape[-1] / (idx.shape[1] - 1)
+
+
 def act_with(lazy, v) -> dict:
     """Seed 0's rates of lazy Q's policy (run ``lazy``) with the table of the value ``v``."""
     sd, agent, gamma = lazy.data, lazy.agent, lazy.config.train.gamma
@@ -86,11 +104,19 @@ def main() -> None:
     ap.add_argument("--out", default=None, help="write the numbers as JSON here")
     ap.add_argument("--lazy-policy", default=None, metavar="RUN_DIR",
                     help="also act with lazy Q's policy of this run on each run's V")
+    ap.add_argument("--fit-rows", type=int, default=20000,
+                    help="neighbourhoods whose local fits' R^2 is reported (with --lazy-policy)")
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                     help="eval.* and lazy Q's acting settings for --lazy-policy")
     args = ap.parse_args()
     out = {}
     lazy = load_run(args.lazy_policy, "lazy", args.set) if args.lazy_policy else None
+    neighbourhoods = None
+    if lazy is not None:
+        first = jax.tree.map(lambda x: x[0], lazy.data.stacked)
+        n = int(lazy.data.n_valid[0])
+        rows = np.random.default_rng(1).choice(n, min(args.fit_rows, n), replace=False)
+        neighbourhoods = (first, np.asarray(lazy.agent.prepare(lazy.seeds[0], first, n, 0).idx)[rows])
     for spec in args.runs:
         run_dir, _, method = spec.partition(":")
         loaded = load_run(run_dir, method or "lazy")
@@ -121,6 +147,9 @@ def main() -> None:
         for r in by_h:
             print(f"| {r['h']} | {r['pairs']} | {r['V']:.1f} | {r['V*(h)']:.1f} |")
         if lazy is not None:
+            r2, noise = fit_r2(neighbourhoods, v_fn_of(loaded), lazy.config.train.gamma)
+            out[spec]["fit_r2"] = {"mean": r2, "noise_level": noise}
+            print(f"local fits over lazy Q's neighbourhoods: mean R^2 {r2:.3f} (pure noise: {noise:.3f})")
             out[spec]["lazy_policy"] = act_with(lazy, v_fn_of(loaded))
             rates = out[spec]["lazy_policy"]
             print(f"lazy Q's policy of {args.lazy_policy} on this V: success {100 * rates['success_rate']:.1f} % ("
