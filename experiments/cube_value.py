@@ -38,7 +38,6 @@ import numpy as np
 from scipy.stats import spearmanr
 
 from lazyq_jax.local_model import fit_local_linear
-from lazyq_jax.parallel import over_seeds
 from lazyq_jax.run import load_run
 from lazyq_jax.targets import bootstrap_table
 from lazyq_jax.tasks.cube.env import OBS
@@ -68,11 +67,11 @@ def v_fn_of(loaded):
     return loaded.agent.value_fn(loaded.state())
 
 
-def fit_r2(neighbourhoods, v, gamma) -> tuple[float, float]:
+def fit_r2(neighbourhoods, table) -> tuple[float, float]:
     """Mean R^2 of Eq. (6)'s fits ``y_j ~ alpha + beta . a_j`` over the sampled
-    neighbourhoods ``idx [R, k]`` of ``data``, ``y`` the table of ``v``; and ``n_a / (k - 1)``."""
+    neighbourhoods ``idx [R, k]`` of ``data``, ``y`` the value table ``[N]``; and ``n_a / (k - 1)``."""
     data, idx = neighbourhoods
-    y = np.asarray(bootstrap_table(v, data, gamma))[idx]
+    y = np.asarray(table)[idx]
     a = np.asarray(data.a)[idx]
     alpha, beta = fit_local_linear(jnp.asarray(a), jnp.asarray(y))
     resid = y - np.asarray(alpha)[:, None] - np.einsum("rkn,rn->rk", a, np.asarray(beta))
@@ -82,16 +81,15 @@ def fit_r2(neighbourhoods, v, gamma) -> tuple[float, float]:
     return float(np.mean(r2)), a.shape[-1] / (idx.shape[1] - 1)
 
 
-def act_with(lazy, v) -> dict:
-    """Seed 0's rates of lazy Q's policy (run ``lazy``) with the table of the value ``v``."""
-    sd, agent, gamma = lazy.data, lazy.agent, lazy.config.train.gamma
+def act_with(lazy, table) -> dict:
+    """Seed 0's rates of lazy Q's policy (run ``lazy``) with the value table ``[N]``."""
+    sd, agent = lazy.data, lazy.agent
     one = lambda tree: jax.tree.map(lambda x: x[:1], tree)
     policy = agent.policies(one(lazy.states), one(sd.stacked), sd.n_valid[:1])
     if policy.value_apply is not None:
         raise SystemExit("--lazy-policy: acting settings that value neighbours per step "
                          "(subgoal_steps, bootstrap_goal='row') call lazy Q's own network; use a table policy")
-    values = over_seeds(lambda d: bootstrap_table(v, d, gamma), 1)(one(sd.stacked))
-    policy = policy.replace(values=values)
+    policy = policy.replace(values=jnp.asarray(table)[None])
     ev = lazy.task.evaluate(agent.act, policy, lazy.config, [lazy.seeds[0]])
     return lazy.task.seed_rates(ev.per_seed[0])
 
@@ -125,7 +123,7 @@ def main() -> None:
         rows, h = pairs(data, args.pairs, args.max_h, rng)
         s = np.asarray(data.s)[rows]
         g = np.asarray(data.s_next)[rows + h - 1]  # the state h steps after s
-        v_fn = jax.jit(loaded.agent.value_fn(loaded.state()))
+        v_fn = jax.jit(v_fn_of(loaded))
         v = np.concatenate([np.asarray(v_fn(jnp.asarray(s[i:i + 4096]), jnp.asarray(g[i:i + 4096])))
                             for i in range(0, len(s), 4096)]).reshape(-1)
         gamma = loaded.config.train.gamma
@@ -147,10 +145,12 @@ def main() -> None:
         for r in by_h:
             print(f"| {r['h']} | {r['pairs']} | {r['V']:.1f} | {r['V*(h)']:.1f} |")
         if lazy is not None:
-            r2, noise = fit_r2(neighbourhoods, v_fn_of(loaded), lazy.config.train.gamma)
+            # y_j = r_j + gamma (1 - done_j) V(s'_j, g_j) of lazy Q's first seed, once for both uses
+            table = bootstrap_table(v_fn, neighbourhoods[0], lazy.config.train.gamma)
+            r2, noise = fit_r2(neighbourhoods, table)
             out[spec]["fit_r2"] = {"mean": r2, "noise_level": noise}
             print(f"local fits over lazy Q's neighbourhoods: mean R^2 {r2:.3f} (pure noise: {noise:.3f})")
-            out[spec]["lazy_policy"] = act_with(lazy, v_fn_of(loaded))
+            out[spec]["lazy_policy"] = act_with(lazy, table)
             rates = out[spec]["lazy_policy"]
             print(f"lazy Q's policy of {args.lazy_policy} on this V: success {100 * rates['success_rate']:.1f} % ("
                   + ", ".join(f"task {i} {100 * rates[f'task{i}']:.0f} %" for i in range(1, 6)) + ")")
