@@ -203,7 +203,8 @@ def main(argv: list[str] | None = None) -> int:
                    f"runs/bench_SUITE); resumed when it exists; {LOCK_HELP}")
     p.add_argument("--set", action="append", metavar="FIELD=VALUE",
                    help="override a config field of every dataset, e.g. train.cycles=100 (repeatable)")
-    p.add_argument("--seeds", type=int, default=3, help="number of seeds (default 3)")
+    p.add_argument("--seeds", type=int, default=3, help="number of seeds (default 3); seeds the directory "
+                   "does not hold yet train as a new group beside the earlier ones, and the table pools them")
     p.add_argument("--first-seed", type=int, default=0)
     p.add_argument("--methods", default="lazy", help=f"{methods_help} (default lazy)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")

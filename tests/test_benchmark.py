@@ -58,8 +58,8 @@ def test_benchmark_interrupted_resumed_and_reported(tmp_path, monkeypatch):
     first = run_dir / DATASETS[0]
     trained = (first / "lazy" / "metrics.jsonl").read_text(), (first / "lazy" / "timings.json").read_text()
     # another suite's settings are refused before anything runs
-    with pytest.raises(RunDirError, match="seeds"):
-        bench.benchmark("ogbench-pointmaze", run_dir, [0, 1], ["lazy"], **args)
+    with pytest.raises(RunDirError, match="preset"):
+        bench.benchmark("ogbench-pointmaze", run_dir, [0], ["lazy"], **{**args, "preset": "paper", "sets": []})
     monkeypatch.setattr(bench, "run", real_run)
 
     # resumed through the command line: the first dataset only re-evaluated, the second trained
@@ -92,4 +92,33 @@ def test_benchmark_interrupted_resumed_and_reported(tmp_path, monkeypatch):
     assert out.stdout.splitlines()[:4] == md.splitlines()[:4]
     out = cli("report", "--archive", str(tmp_path / "archived"), str(run_dir))
     assert out.returncode == 0, out.stderr[-3000:]
+    assert suite.table(tmp_path / "archived", "x")["datasets"] == suite.table(run_dir, "x")["datasets"]
+
+
+def test_benchmark_adds_seeds_as_a_group(tmp_path):
+    """Seeds a benchmark directory does not hold yet train as a new group below each dataset
+    (the first group is resumed, not retrained); the table pools the groups' seeds."""
+    run_dir = tmp_path / "bench"
+    args = dict(preset="smoke", sets=POINTMAZE_SMOKE, progress=False, command="test")
+    bench.benchmark("ogbench-pointmaze", run_dir, [0], ["lazy"], datasets=DATASETS, **args)
+    first = run_dir / DATASETS[0]
+    trained = (first / "lazy" / "metrics.jsonl").read_text()
+    bench.benchmark("ogbench-pointmaze", run_dir, [0, 1], ["lazy"], datasets=DATASETS[:1], **args)
+    meta = suite.read_suite(run_dir)
+    assert meta["seeds"] == [0, 1] and meta["seed_groups"] == [[0], [1]]
+    group = suite.group_dir(first, [1], meta["seed_groups"])
+    assert group == first / "seeds-1" and json.loads((group / "run.json").read_text())["seeds"] == [1]
+    assert (first / "lazy" / "metrics.jsonl").read_text() == trained
+    rates = [row["success_rate"] for d in (first, group)
+             for row in json.loads((d / "results.json").read_text())["methods"]["lazy"]["per_seed"]]
+    data = suite.table(run_dir)
+    one, other = data["datasets"]
+    assert one["methods"]["lazy"]["seeds"] == [0, 1]
+    assert one["methods"]["lazy"]["rate"] == t_interval(rates, bounds=(0.0, 1.0))
+    assert other["methods"]["lazy"]["seeds"] == [0]  # not extended: its row says so
+    rows = suite.markdown(data).splitlines()
+    assert "(1 seed)" not in rows[2] and "(1 seed)" in rows[3] and "seeds 0, 1:" in rows[5]
+    out = cli("report", "--archive", str(tmp_path / "archived"), str(run_dir))
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert (tmp_path / "archived" / DATASETS[0] / "seeds-1" / "results.json").is_file()
     assert suite.table(tmp_path / "archived", "x")["datasets"] == suite.table(run_dir, "x")["datasets"]

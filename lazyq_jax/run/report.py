@@ -290,7 +290,8 @@ def blocks(files: Sequence[Path], update: bool = False) -> tuple[list[str], list
 def archive(dest: Path, run_dir: Path) -> list[Path]:
     """Copy what :func:`table` reads of ``run_dir`` (:data:`ARCHIVED`: run.json, results.json,
     each method's method.json, timings.json and eval.json) into ``dest``; returns the copies.
-    A benchmark directory (``suite.json``): its own table files and each finished dataset's."""
+    A benchmark directory (``suite.json``): its own table files and each finished dataset's
+    seed groups."""
     if (run_dir / suite.SUITE_FILE).is_file():
         copies = []
         for name in (suite.SUITE_FILE, "results.json", "results.md"):
@@ -298,9 +299,13 @@ def archive(dest: Path, run_dir: Path) -> list[Path]:
                 dest.mkdir(parents=True, exist_ok=True)
                 copies.append(dest / name)
                 shutil.copyfile(run_dir / name, copies[-1])
-        for name in suite.read_suite(run_dir)["datasets"]:
-            if (run_dir / name / "results.json").is_file():
-                copies += archive(dest / name, run_dir / name)
+        meta = suite.read_suite(run_dir)
+        groups = suite.seed_groups(meta)
+        for name in meta["datasets"]:
+            for group in groups:  # each seed group's run directory (suite.group_dir)
+                rel = suite.group_dir(Path(name), group, groups)
+                if (run_dir / rel / "results.json").is_file():
+                    copies += archive(dest / rel, run_dir / rel)
         return copies
     _read(run_dir)
     copies = []

@@ -3,10 +3,12 @@ dataset's success per method as mean [95 % CI] over the seeds beside the publish
 and each method's budget as a share of the published one.
 
 ``SUITE_DIR/suite.json`` (written by ``benchmark``) names the suite, its datasets (in order),
-methods and seeds; ``SUITE_DIR/<dataset>/`` is an ordinary run directory (``results.json``,
-``run.json``, each method's ``method.json`` and ``timings.json``), so ``report --archive``
-copies work as well as live runs.  Datasets whose run has no ``results.json`` yet are listed as
-pending.  The rate is the task's first (:attr:`~lazyq_jax.tasks.base.Task.rates`), the
+methods, seeds and seed groups (the seeds trained together, :func:`seed_groups`);
+``SUITE_DIR/<dataset>/`` is an ordinary run directory (``results.json``, ``run.json``, each
+method's ``method.json`` and ``timings.json``) holding the first group, each later group one
+below it (:func:`group_dir`), so ``report --archive`` copies work as well as live runs.  A
+dataset's row pools the seeds of its groups that have a ``results.json``; datasets with none
+yet are listed as pending.  The rate is the task's first (:attr:`~lazyq_jax.tasks.base.Task.rates`), the
 published numbers the task's (:attr:`~lazyq_jax.tasks.base.Task.published`).
 """
 
@@ -15,6 +17,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from typing import Sequence
 
 from lazyq_jax import tasks
 from lazyq_jax.run.results import CI
@@ -33,6 +36,19 @@ def read_suite(suite_dir: Path) -> dict:
     return json.loads(path.read_text())
 
 
+def seed_groups(meta: dict) -> list[list[int]]:
+    """The seed groups of a ``suite.json`` (a benchmark of an older lazyq-jax: one, its seeds)."""
+    return [list(g) for g in meta.get("seed_groups") or [meta["seeds"]]]
+
+
+def group_dir(dataset_dir: Path, group: Sequence[int], groups: Sequence[Sequence[int]]) -> Path:
+    """The run directory of seed ``group`` (one of ``groups``): the dataset's own directory for
+    the first group, ``seeds-<s1>-<s2>...`` below it for each later one."""
+    if list(group) == list(groups[0]):
+        return Path(dataset_dir)
+    return Path(dataset_dir) / ("seeds-" + "-".join(str(s) for s in group))
+
+
 def _steps(method_dir: Path, timings: dict) -> tuple[int, int] | None:
     """``(gradient steps, batch size)`` of a trained method, as its records state them."""
     record = json.loads((method_dir / "method.json").read_text()) if (method_dir / "method.json").exists() else {}
@@ -41,18 +57,25 @@ def _steps(method_dir: Path, timings: dict) -> tuple[int, int] | None:
     return (int(steps), int(batch)) if steps and batch else None
 
 
-def _method(run_dir: Path, name: str, results: dict, key: str) -> dict | None:
-    m = results["methods"].get(name)
-    if m is None:
+def _method(runs: Sequence[tuple[Path, dict]], name: str, key: str) -> dict | None:
+    """Method ``name``'s entry pooled over the seed groups ``runs`` (``(run_dir, results)``)."""
+    rows, seconds, steps = [], [], []
+    for run_dir, results in runs:
+        m = results["methods"].get(name)
+        if m is None:
+            continue
+        rows += m["per_seed"]
+        timings = m.get("timings", {})
+        seconds.append((timings["train_s"] + timings.get("prepare_s", 0.0)) if timings.get("train_s") else None)
+        steps.append(_steps(run_dir / parse_method(name).dirname, timings))
+    if not rows:
         return None
-    values = [row.get(key) for row in m["per_seed"]]
-    ok = values and all(isinstance(v, (int, float)) and math.isfinite(v) for v in values)
-    timings = m.get("timings", {})
+    values = [row.get(key) for row in rows]
+    ok = all(isinstance(v, (int, float)) and math.isfinite(v) for v in values)
     return {"rate": t_interval(values, bounds=(0.0, 1.0)) if ok else None,
-            "seeds": [row["seed"] for row in m["per_seed"]],
-            "steps": _steps(run_dir / parse_method(name).dirname, timings),
-            "train_s_per_seed": (timings["train_s"] + timings.get("prepare_s", 0.0)) / len(m["per_seed"])
-            if timings.get("train_s") else None}
+            "seeds": [row["seed"] for row in rows],
+            "steps": steps[0] if len(set(steps)) == 1 else None,
+            "train_s_per_seed": sum(seconds) / len(rows) if None not in seconds else None}
 
 
 def table(suite_dir: Path, command: str | None = None) -> dict:
@@ -60,6 +83,7 @@ def table(suite_dir: Path, command: str | None = None) -> dict:
     suite_dir = Path(suite_dir)
     meta = read_suite(suite_dir)
     methods = list(meta["methods"])
+    groups = seed_groups(meta)
     out = {"suite": meta["suite"], "ci": CI, "rate_label": "", "methods": methods, "seeds": meta["seeds"],
            "command": command or meta.get("command", ""), "datasets": []}
     for name in meta["datasets"]:
@@ -73,10 +97,11 @@ def table(suite_dir: Path, command: str | None = None) -> dict:
         run_dir = suite_dir / name
         if (run_dir / "run.json").is_file():
             entry["eval"] = json.loads((run_dir / "run.json").read_text())["config"].get("eval")
-        if (run_dir / "results.json").is_file():
-            results = json.loads((run_dir / "results.json").read_text())
+        runs = [(d, json.loads((d / "results.json").read_text()))
+                for d in (group_dir(run_dir, g, groups) for g in groups) if (d / "results.json").is_file()]
+        if runs:
             entry["pending"] = False
-            entry["methods"] = {m: _method(run_dir, m, results, key) for m in methods}
+            entry["methods"] = {m: _method(runs, m, key) for m in methods}
         out["datasets"].append(entry)
     return out
 
@@ -107,8 +132,9 @@ def markdown(data: dict) -> str:
         for m in methods:
             r = None if d["pending"] else d["methods"].get(m)
             ours = "pending" if d["pending"] else ("–" if not r or not r["rate"] else format_ci(r["rate"]))
-            if r and r["rate"] and len(r["seeds"]) == 1:
-                ours += " (1 seed)"
+            n = len(r["seeds"]) if r and r["rate"] else 0
+            if n and (n == 1 or n < len(data["seeds"])):  # fewer seeds than the suite's: said in the cell
+                ours += f" ({n} seed{'s' if n > 1 else ''})"
             pub = d["published"].get(parse_method(m).name)
             cells.append(ours + ("" if pub is None else f" ({pub[0]:g})"))
             if r and r["steps"]:
