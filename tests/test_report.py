@@ -31,7 +31,7 @@ def counts(seed: int, method: str) -> np.ndarray:
     return np.stack([correct, (EPISODES - correct) // 2, EPISODES - correct - (EPISODES - correct) // 2], 1)
 
 
-def make_run(run_dir: Path, seeds, methods=("lazy", "iql"), sets=(), acting=None, train_s=30.0):
+def make_run(run_dir: Path, seeds, methods=("lazy", "iql"), sets=(), acting=None, train_s=30.0, baseline=None):
     """A finished run as the runner leaves it (minus checkpoints, data and figures)."""
     config = override(tasks.preset("push", "smoke"), list(sets))
     open_run(run_dir, config, seeds, resume=False, overwrite=False)
@@ -44,7 +44,8 @@ def make_run(run_dir: Path, seeds, methods=("lazy", "iql"), sets=(), acting=None
         records[name] = {"per_seed_eval": per_seed, "timings": timings,
                          **({"acting": acting} if acting and name == "lazy" else {})}
         record = ({"method": "lazy", "train": {"epochs": 2, "batch_size": 256}} if name == "lazy" else
-                  {"method": name, "config": {"steps": 500, "batch_size": 256}, "budget": 1.0})
+                  {"method": name, "config": {"steps": 500, "batch_size": 256, "gamma": 0.99, **(baseline or {})},
+                   "budget": 1.0})
         write_json(run_dir / name / "method.json", record)
         write_json(run_dir / name / "timings.json", timings)
         write_json(run_dir / name / "eval.json", {"acting": acting or {}, "per_seed": per_seed} if acting and
@@ -121,7 +122,7 @@ def test_settings_that_differ_give_labelled_rows_and_paired_differences(tmp_path
     labels = {r["label"]: r["seeds"] for r in data["rows"]}
     assert labels == {"lazy (train.target_steps=1)": [0, 1, 2], "lazy (train.target_steps=10)": [0, 1],
                       "lazy (train.target_steps=1, neighbours.max_level=2)": [3, 4],
-                      "iql (train.target_steps=1)": [0, 1, 2]}
+                      "iql": [0, 1, 2]}  # lazy Q's settings do not label a baseline's row
     ten = next(p for p in data["paired"] if p["label"] == "lazy (train.target_steps=10)")
     assert ten["reference"] == "lazy (train.target_steps=1)" and ten["seeds"] == [0, 1]
     iql = next(p for p in data["paired"] if p["label"].startswith("iql"))
@@ -133,6 +134,11 @@ def test_settings_that_differ_give_labelled_rows_and_paired_differences(tmp_path
     assert f"| {100 * mean:.1f} [{100 * lo:.1f}, {100 * hi:.1f}] |" in text.split("Paired")[1]
     flat = next(p for p in data["paired"] if "max_level" in p["label"])
     assert flat["seeds"] == [] and set(flat["differences"].values()) == {None}
+    # a baseline's own config (its method.json) does label its rows
+    make_run(tmp_path / "g", [5], methods=("iql",), sets=["train.target_steps=1"], baseline={"gamma": 0.9})
+    rows = report.table(args(tmp_path / "one", tmp_path / "ten", tmp_path / "g"))["rows"]
+    assert {r["label"]: r["seeds"] for r in rows if r["label"].startswith("iql")} == {
+        "iql (gamma=0.99)": [0, 1, 2], "iql (gamma=0.9)": [5]}
 
 
 def test_markdown_json_per_goal_and_the_archive(tmp_path):

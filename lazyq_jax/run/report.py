@@ -41,6 +41,7 @@ from lazyq_jax.run.runner import open_existing
 from lazyq_jax.stats import format_ci, t_interval
 
 NOT_COMPARED = ("seed", "parallel")  # what runs pooled into one row may differ in
+LAZY_ONLY = ("train", "neighbours")  # run-config sections only lazy Q reads (a baseline: its method.json)
 ARCHIVED = ("run.json", "results.json", "*/method.json", "*/timings.json", "*/eval.json")
 BLOCK = re.compile(r"^<!-- report (.*?) -->\n(.*?)^<!-- /report -->", re.DOTALL | re.MULTILINE)
 OUTCOMES = ("correct", "wrong", "not_pushed")
@@ -102,6 +103,11 @@ def gather(run_dirs: Sequence[Path], methods: Sequence[str] | None = None,
     if unknown:
         raise RunDirError(f"{', '.join(unknown)}: in none of the runs; their methods: {', '.join(found)}")
     order = list(methods or found)
+    # A baseline's row differs by its own config (method.json; what it took of train.* is
+    # there), not by lazy Q's sections of the run config.
+    own = {name: _method_configs(root, runs, name) for name in order if parse_method(name).name != "lazy"}
+    own_differ = {name: sorted({f for c in cs.values() for f in config_diff(next(iter(cs.values())), c)})
+                  for name, cs in own.items()}
     rows: dict[str, Row] = {}
     for d, config, results in runs:
         for name in order:
@@ -109,7 +115,11 @@ def gather(run_dirs: Sequence[Path], methods: Sequence[str] | None = None,
             if m is None:
                 continue
             acting = m.get("acting", {})
-            settings = {**{f: lookup(config, f)[1] for f in differ}, **acting}
+            if name in own:
+                settings = {**{f: lookup(config, f)[1] for f in differ if f.split(".")[0] not in LAZY_ONLY},
+                            **{f: lookup(own[name][d], f)[1] for f in own_differ[name]}, **acting}
+            else:
+                settings = {**{f: lookup(config, f)[1] for f in differ}, **acting}
             row = rows.setdefault(json.dumps([name, settings], sort_keys=True), Row(name, settings, acting))
             t = m.get("timings", {})
             spent = (t["train_s"] + t.get("prepare_s", 0.0)) / len(results["seeds"]) if t.get("train_s") else None
@@ -122,6 +132,16 @@ def gather(run_dirs: Sequence[Path], methods: Sequence[str] | None = None,
             budget = _budget(root / d, name, config, t)
             row.budgets += [] if budget in row.budgets else [budget]
     return tasks.get(kinds.pop()), sorted(rows.values(), key=lambda row: order.index(row.method))
+
+
+def _method_configs(root: Path, runs, name: str) -> dict:
+    """``{run_dir: config}`` of method ``name``'s ``method.json`` in each run that has it."""
+    out = {}
+    for d, _, results in runs:
+        path = root / d / parse_method(name).dirname / "method.json"
+        if name in results["methods"] and path.is_file():
+            out[d] = json.loads(path.read_text()).get("config", {})
+    return out
 
 
 def _interval(values: list, bounds: tuple[float, float] | None = (0.0, 1.0)) -> dict | None:
