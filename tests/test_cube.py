@@ -112,7 +112,7 @@ def script_episodes(seeds, steps, noise=0.1, smoothing=0.5):
     return {k: np.array(v) for k, v in out.items()}
 
 
-def test_play_data_are_ogbenchs_script_episode_for_episode():
+def test_play_data_are_ogbenchs_script_episode_for_episode(capfd):
     """Two episodes of 120 steps: the recipe's rows equal the script's for the same env seed and
     global random state (float32 as the script saves them), for one worker and for two, and
     the recipe's statistics: episodes of ``steps`` rows ending in one terminal, actions in the
@@ -127,8 +127,10 @@ def test_play_data_are_ogbenchs_script_episode_for_episode():
     np.testing.assert_array_equal(data["new_targets"], ref["new_targets"])
     one = play(np.random.default_rng(3), 2, steps, workers=1)
     np.testing.assert_array_equal(one["observations"], data["observations"])
-    two = play(np.random.default_rng(3), 2, 30, processes=2)  # one episode a spawned process
+    capfd.readouterr()
+    two = play(np.random.default_rng(3), 2, 30, processes=2, progress=True)  # one episode a spawned process
     np.testing.assert_array_equal(two["actions"], data["actions"].reshape(2, steps, 5)[:, :30].reshape(60, 5))
+    assert capfd.readouterr().err.count("cube play data") >= 1  # the first process's bar
     term = data["terminals"].reshape(2, steps)
     assert term[:, -1].all() and not term[:, :-1].any()
     assert np.all(np.abs(data["actions"]) <= 1.0)

@@ -88,7 +88,8 @@ def play(rng: np.random.Generator, episodes: int, steps: int = 1001, noise: floa
     and ``new_targets`` (the oracle's plan ended at that step and a new target was set).
     Each episode's two seeds (env, oracle) are drawn from ``rng`` first; the episodes are then
     stepped by ``workers`` threads in each of ``processes`` processes (spawned, a contiguous
-    share of the episodes each): the data do not depend on either."""
+    share of the episodes each): the data do not depend on either.  ``progress``: a bar over the
+    steps (with several processes, the first's: they step their shares side by side)."""
     if not (isinstance(episodes, int) and episodes >= 1 and isinstance(steps, int) and steps >= 2):
         raise ValueError(f"play needs episodes >= 1 and steps >= 2, got {episodes}, {steps}")
     if not (isinstance(processes, int) and processes >= 1):
@@ -99,7 +100,8 @@ def play(rng: np.random.Generator, episodes: int, steps: int = 1001, noise: floa
         return play_seeded(seeds, *args, progress=progress)
     chunks = [c for c in np.array_split(seeds, processes) if len(c)]
     with ProcessPoolExecutor(len(chunks), mp_context=multiprocessing.get_context("spawn")) as pool:
-        parts = list(pool.map(play_seeded, chunks, *([a] * len(chunks) for a in args)))
+        bars = [progress] + [False] * (len(chunks) - 1)
+        parts = list(pool.map(play_seeded, chunks, *([a] * len(chunks) for a in args), bars))
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
