@@ -33,7 +33,7 @@ import argparse
 import dataclasses
 import json
 import time
-from typing import Any, Callable
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -50,18 +50,19 @@ from lazyq_jax.tasks.cube.env import OBS
 RULES = ("bc", "awr", "best", "lazy", "own")
 
 
-def relative_features(s):
-    """``phi(s) = (effector - cube (3), gripper opening (1), cube height (1))`` ``[..., 5]``: the
-    grasp's coordinates, the same wherever on the table the cube lies (observation units)."""
-    return jnp.concatenate([s[..., OBS["effector_pos"]] - s[..., OBS["cube_pos"]], s[..., OBS["gripper_opening"]],
-                            s[..., OBS["cube_pos"]][..., 2:]], -1)
-
-
 def relative_cube_features(s):
-    """``relative_features`` with the cube's whole position: ``(effector - cube (3), gripper
-    opening (1), cube position (3))`` ``[..., 7]`` (where the cube is decides the way to its target)."""
+    """``phi(s) = (effector - cube (3), gripper opening (1), cube position (3))`` ``[..., 7]``
+    (observation units): the grasp's coordinates and where the cube is (which decides the way
+    to its target)."""
     return jnp.concatenate([s[..., OBS["effector_pos"]] - s[..., OBS["cube_pos"]], s[..., OBS["gripper_opening"]],
                             s[..., OBS["cube_pos"]]], -1)
+
+
+def relative_features(s):
+    """:func:`relative_cube_features` without the cube's x and y: ``(effector - cube, gripper
+    opening, cube height)`` ``[..., 5]``, the same wherever on the table the cube lies."""
+    r = relative_cube_features(s)
+    return jnp.concatenate([r[..., :4], r[..., 6:]], -1)
 
 
 @struct.dataclass
@@ -94,7 +95,9 @@ def act_of(rule: str, alpha: float, phi: Callable | None, v: Callable, translate
         nb = query_policy(p.index, key, s if phi is None else phi(s), None)
         rows, valid = jnp.maximum(nb.idx, 0), nb.idx >= 0
         a = p.actions[rows]  # [B, k, n_a]
-        if translate:
+        if rule == "bc":  # no value: the 2k network evaluations a step are skipped
+            adv = None
+        elif translate:
             adv = translated_values(v, p.s_next[rows], s, g) - translated_values(v, p.s[rows], s, g)
         else:
             adv = values_at_goals(v, p.s_next[rows], g) - values_at_goals(v, p.s[rows], g)
