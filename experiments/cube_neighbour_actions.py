@@ -46,6 +46,7 @@ from lazyq_jax.policy import in_sample_greedy
 from lazyq_jax.run import load_run
 from lazyq_jax.targets import values_at_goals
 from lazyq_jax.tasks.cube.env import OBS
+from learned_space import load_phi  # experiments/: run from the repository root or experiments/
 
 RULES = ("bc", "awr", "best", "lazy", "own")
 
@@ -63,6 +64,12 @@ def relative_features(s):
     opening, cube height)`` ``[..., 5]``, the same wherever on the table the cube lies."""
     r = relative_cube_features(s)
     return jnp.concatenate([r[..., :4], r[..., 6:]], -1)
+
+
+def metric_value(phi: Callable) -> Callable:
+    """HILP's value of a learned map (experiments/learned_space.py): ``V(s, g) = -||phi(s) -
+    phi(g)||``, the temporal distance to the goal in the map's units."""
+    return lambda s, g: -jnp.linalg.norm(phi(s) - phi(g), axis=-1)
 
 
 @struct.dataclass
@@ -134,14 +141,15 @@ def episode_facts(rollouts) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--lazy", required=True, metavar="RUN_DIR", help="a lazy Q run: its data, feature map, k, radii")
-    ap.add_argument("--value", default=None, metavar="RUN_DIR:METHOD",
-                    help="the V that values the neighbours (default: the lazy run's own)")
+    ap.add_argument("--value", default=None, metavar="RUN_DIR:METHOD|learned:PATH",
+                    help="the V that values the neighbours (default: the lazy run's own; learned:PATH: "
+                    "-||phi(s) - phi(g)|| of a map learned by experiments/learned_space.py)")
     ap.add_argument("--rules", default=",".join(RULES), help=f"comma-separated, of {RULES}")
     ap.add_argument("--alpha", type=float, default=10.0, help="awr's temperature (OGBench's cube GCIVL: 10)")
     ap.add_argument("--episodes", type=int, default=10, help="episodes per task")
-    ap.add_argument("--features", choices=("run", "relative", "relative-cube"), default="run",
-                    help="the neighbourhoods' space: the run's feature map, relative_features or "
-                    "relative_cube_features")
+    ap.add_argument("--features", default="run", metavar="run|relative|relative-cube|learned:PATH",
+                    help="the neighbourhoods' space: the run's feature map, relative_features, "
+                    "relative_cube_features, or a map learned by experiments/learned_space.py")
     ap.add_argument("--translate-goals", action="store_true",
                     help="value each neighbour at the query's goal moved with its cube (translated_values)")
     ap.add_argument("--radius-s", type=float, default=None, help="the neighbourhoods' radius (default the run's)")
@@ -154,16 +162,25 @@ def main() -> None:
         ap.error(f"unknown rules {bad}; choose from {RULES}")
     if args.episodes < 1:
         ap.error("--episodes must be >= 1")
+    if not (args.features in ("run", "relative", "relative-cube") or args.features.startswith("learned:")):
+        ap.error(f"--features {args.features!r}: choose run, relative, relative-cube or learned:PATH")
     lazy = load_run(args.lazy, "lazy", [f"eval.episodes_per_task={args.episodes}"])
     run_dir, _, method = (args.value or f"{args.lazy}:lazy").partition(":")
-    valued = lazy if args.value is None else load_run(run_dir, method or "lazy")
-    v = valued.agent.value_fn(valued.state())
+    if run_dir == "learned":
+        if "own" in rules:
+            ap.error("--rules own needs a trained run's policy; a learned map has none")
+        valued, v = None, metric_value(load_phi(method))
+    else:
+        valued = lazy if args.value is None else load_run(run_dir, method or "lazy")
+        v = valued.agent.value_fn(valued.state())
     data = jax.tree.map(lambda x: x[0], lazy.data.stacked)
     n = int(lazy.data.n_valid[0])
     nc, phi = lazy.config.neighbours, lazy.agent.problem.features
     nc = dataclasses.replace(nc, radius_s=nc.radius_s if args.radius_s is None else args.radius_s,
                              k=nc.k if args.k is None else args.k)
-    if args.features != "run":
+    if args.features.startswith("learned:"):
+        phi = load_phi(args.features.partition(":")[2])
+    elif args.features != "run":
         phi = relative_features if args.features == "relative" else relative_cube_features
     x = np.asarray(jax.jit(phi)(jnp.asarray(data.s)[:n]))
     index = stack_policy_indices([build_policy_index(x, None, k=nc.k, radius_s=nc.radius_s, radius_g=nc.radius_g,

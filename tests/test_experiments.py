@@ -1,12 +1,14 @@
 """experiments/: the index names every script and only scripts that exist, every script
-answers ``--help``, the cheap ones run a tiny case, and the shared helper computes what it
-says (against SciPy's t interval)."""
+answers ``--help``, the cheap ones run a tiny case, the shared helper computes what it says
+(against SciPy's t interval) and learned_space.py's map is what it saves (against the network
+and NumPy)."""
 
 import re
 import subprocess
 import sys
 from pathlib import Path
 
+import jax
 import numpy as np
 from conftest import timeout
 from scipy import stats
@@ -14,6 +16,9 @@ from scipy import stats
 EXP = Path(__file__).resolve().parents[1] / "experiments"
 sys.path.insert(0, str(EXP))
 from _common import alternating, rate_keys, rates_table, timed  # the experiments' shared helper
+from learned_space import load_phi, metric_values, phi_net, save_phi, trajectory_pairs
+
+from lazyq_jax.agents.common import init_ensemble
 
 SCRIPTS = sorted(p.name for p in EXP.iterdir() if p.suffix in (".py", ".sh") and not p.name.startswith("_"))
 # (script, arguments): seconds each on the 2-core CPU, mostly compilation
@@ -90,3 +95,24 @@ def test_rates_table_against_scipy(capsys):
         lo, hi = stats.t.interval(0.95, len(v) - 1, loc=v.mean(), scale=v.std(ddof=1) / np.sqrt(len(v)))
         assert row.endswith(f"{100 * v.mean():.1f} % [{100 * lo:.1f}, {100 * hi:.1f}] |"), row
     assert lines[4].startswith("| random - zero (paired) |")
+
+
+def test_learned_space_saves_its_map_and_values_by_its_metric(tmp_path):
+    """experiments/learned_space.py: the saved map is the twin's first member (against the
+    network applied to those parameters), its value is minus the Euclidean distance of the
+    maps (against NumPy, both members), and the trajectory pairs stay inside a trajectory."""
+    rng = np.random.default_rng(0)
+    s, g = (rng.normal(size=(32, 6)).astype(np.float32) for _ in range(2))
+    net = phi_net(16, 3, 4)
+    params = init_ensemble(net, jax.random.PRNGKey(0), s[:1])
+    members = [np.asarray(net.apply(jax.tree.map(lambda x, i=i: x[i], params), s), np.float64) for i in (0, 1)]
+    save_phi(tmp_path / "phi.msgpack", net, params)
+    # float32 MLP outputs of magnitude ~1, 3 layers of 16: rounding ~1e-6
+    np.testing.assert_allclose(np.asarray(load_phi(tmp_path / "phi.msgpack")(s)), members[0], rtol=1e-5, atol=1e-5)
+    assert not np.allclose(members[0], members[1])  # two members, independently initialised
+    goals = [np.asarray(net.apply(jax.tree.map(lambda x, i=i: x[i], params), g), np.float64) for i in (0, 1)]
+    expected = [-np.linalg.norm(a - b, axis=-1) for a, b in zip(members, goals)]
+    np.testing.assert_allclose(np.asarray(metric_values(net, params, s, g)), expected, rtol=1e-5, atol=1e-5)
+    traj_last = np.repeat(np.arange(9, 100, 10), 10)  # ten trajectories of ten rows
+    rows, h = trajectory_pairs(traj_last, 500, 30, rng)
+    assert len(rows) == 500 and (h >= 1).all() and (rows + h <= traj_last[rows]).all() and h.max() <= 9
