@@ -21,7 +21,9 @@ task's protocol (OGBench's 5 tasks x ``eval.episodes_per_task``; seed 0's episod
 another agent's V makes lazy Q's step succeed, lazy Q's V is what bounds it; if not, the step.
 It also reports how linear each V is in the actions of lazy Q's training neighbourhoods
 (``--fit-rows`` of them): the local fit's R^2 of ``y_j ~ alpha + beta . a_j`` (Eq. 5-6) over
-the k neighbours, beside ``n_a / (k - 1)``, what a fit of pure noise scores on average.
+the k neighbours, beside ``n_a / (k - 1)``, what a fit of pure noise scores on average, and
+what those neighbourhoods hold for the fit (:func:`composition`: distinct trajectories and
+actions, the spread of the neighbours' actions, rank-deficient designs).
 
     .venv/bin/python experiments/cube_value.py --runs runs/cube:lazy runs/cube_gcivl:gcivl:width=256 \
         --lazy-policy runs/cube --set neighbours.greedy=data
@@ -81,6 +83,32 @@ def fit_r2(neighbourhoods, table) -> tuple[float, float]:
     return float(np.mean(r2)), a.shape[-1] / (idx.shape[1] - 1)
 
 
+def composition(neighbourhoods, traj_last, tol: float = 0.1) -> dict:
+    """What Eq. (6)'s fits get from lazy Q's neighbourhoods ``idx [R, k]``: medians over them
+    of the distinct trajectories among the ``k`` neighbours, the distinct actions (two
+    actions the same if they share a cell of a ``tol``-wide grid on every axis of the box), the
+    centred action matrix's smallest singular value over ``sqrt(k)`` (the spread of the
+    least-spread direction of the neighbours' actions, in action units; 0: no action varies
+    that way), and the share of neighbourhoods whose ``[1, a_j]`` design has rank below
+    ``n_a + 1`` (Eq. 6 underdetermined)."""
+    data, idx = neighbourhoods
+    a = np.asarray(data.a)[idx]  # [R, k, n_a]
+    trajs = np.asarray(traj_last)[idx]
+    cells = np.floor(a / tol).astype(np.int64)
+    distinct_traj = [len(np.unique(t)) for t in trajs]
+    distinct_a = [len(np.unique(c, axis=0)) for c in cells]
+    centred = a - a.mean(1, keepdims=True)
+    sv = np.linalg.svd(centred, compute_uv=False)  # [R, min(k, n_a)]
+    design = np.concatenate([np.ones(a.shape[:2] + (1,)), a], -1)
+    rank = np.linalg.matrix_rank(design)
+    return {"k": int(idx.shape[1]), "n_a": int(a.shape[-1]),
+            "distinct_trajectories_median": float(np.median(distinct_traj)),
+            "distinct_actions_median": float(np.median(distinct_a)), "tol": tol,
+            "smallest_action_spread_median": float(np.median(sv[:, -1] / np.sqrt(idx.shape[1]))),
+            "largest_action_spread_median": float(np.median(sv[:, 0] / np.sqrt(idx.shape[1]))),
+            "rank_deficient_share": float(np.mean(rank < a.shape[-1] + 1))}
+
+
 def act_with(lazy, table) -> dict:
     """Seed 0's rates of lazy Q's policy (run ``lazy``) with the value table ``[N]``."""
     sd, agent = lazy.data, lazy.agent
@@ -115,6 +143,12 @@ def main() -> None:
         n = int(lazy.data.n_valid[0])
         rows = np.random.default_rng(1).choice(n, min(args.fit_rows, n), replace=False)
         neighbourhoods = (first, np.asarray(lazy.agent.prepare(lazy.seeds[0], first, n, 0).idx)[rows])
+        out["neighbourhoods"] = composition(neighbourhoods, first.traj_last)
+        c = out["neighbourhoods"]
+        print(f"lazy Q's neighbourhoods ({len(rows)}, k = {c['k']}): distinct trajectories {c['distinct_trajectories_median']:.0f}, "
+              f"distinct actions (grid {c['tol']}) {c['distinct_actions_median']:.0f}, action spread (median singular value / "
+              f"sqrt k) least {c['smallest_action_spread_median']:.3f}, most {c['largest_action_spread_median']:.3f}; "
+              f"rank-deficient designs {100 * c['rank_deficient_share']:.1f} %")
     for spec in args.runs:
         run_dir, _, method = spec.partition(":")
         loaded = load_run(run_dir, method or "lazy")
