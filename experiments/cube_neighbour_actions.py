@@ -18,7 +18,10 @@ reaches 75 % on this data), and acts by one of the rules
   variation across the neighbours' states;
 * ``own``: the ``--value`` run's own policy (e.g. GCIVL's actor), the reference row;
 
-evaluated by the task's protocol (OGBench's 5 tasks, ``--episodes`` per task, seed 0), with
+in the run's feature space, the grasp-relative ones below or a map learned from the data
+(``--features learned:PATH``, ``experiments/learned_space.py``; ``--value learned:PATH``
+values the moves by that map's ``-||phi(s) - phi(g)||``), evaluated by the task's protocol
+(OGBench's 5 tasks, ``--episodes`` per task, seed 0), with
 what the episodes did: the share whose cube moved more than 2 cm, or was lifted more than 2 cm,
 the median over episodes of the effector's closest approach to the cube and of the cube's
 closest approach to its target (beside its distance at the start).

@@ -49,6 +49,7 @@ from lazyq_jax.agents.common import MLP, apply_ensemble, init_ensemble, polyak, 
 from lazyq_jax.agents.gcivl import ivl_value_loss
 from lazyq_jax.agents.goals import GoalMix, fresh_goals
 from lazyq_jax.run import load_run
+from lazyq_jax.tasks.cube.env import OBS, OBS_DIM, XYZ_SCALE
 
 #: HILP's value goals (its ``value_p_*goal``): never the row itself, 0.625 a geometric later
 #: state of the trajectory, else a random state.
@@ -141,8 +142,9 @@ def describe(phi, data, n_valid: int, *, pairs: int, k: int, queries: int, seed:
     rows, h = trajectory_pairs(np.asarray(data.traj_last[:n_valid]), pairs, 1000, rng)
     dist = np.linalg.norm(x[rows] - x[rows + h], axis=-1)
     out = {"spearman_all": float(spearmanr(-dist, -h)[0])}
-    if s.shape[-1] == 28:  # OGBench's cube observation: the cube's position at 19:22, x10
-        moved = np.linalg.norm(s[rows, 19:22] - s[rows + h, 19:22], axis=-1) / 10 > 0.04
+    cube, effector = OBS["cube_pos"], OBS["effector_pos"]
+    if s.shape[-1] == OBS_DIM:  # OGBench's cube observation (positions offset and x10)
+        moved = np.linalg.norm(s[rows, cube] - s[rows + h, cube], axis=-1) / XYZ_SCALE > 0.04
         out["spearman_cube_moved"] = float(spearmanr(-dist[moved], -h[moved])[0])
         out["pairs_cube_moved"] = int(moved.sum())
     out["distance_by_h"] = {f"[{lo}, {hi})": float(dist[(h >= lo) & (h < hi)].mean())
@@ -158,8 +160,8 @@ def describe(phi, data, n_valid: int, *, pairs: int, k: int, queries: int, seed:
         near.append(part)
     kth, near = np.concatenate(kth), np.concatenate(near)
     out[f"kth_neighbour_distance_quantiles_k{k}"] = {p: float(np.quantile(kth, p / 100)) for p in (10, 50, 90)}
-    if s.shape[-1] == 28:  # how far apart in the grasp's coordinates the neighbours are, metres
-        grasp = (s[:, 12:15] - s[:, 19:22]) / 10  # effector - cube (OGBench: offset and x10)
+    if s.shape[-1] == OBS_DIM:  # how far apart in the grasp's coordinates the neighbours are, metres
+        grasp = (s[:, effector] - s[:, cube]) / XYZ_SCALE
         spread = np.linalg.norm(grasp[near] - grasp[q_rows][:, None], axis=-1).max(1)
         out[f"neighbours_grasp_spread_m_quantiles_k{k}"] = {p: float(np.quantile(spread, p / 100))
                                                             for p in (10, 50, 90)}
