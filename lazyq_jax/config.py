@@ -191,6 +191,17 @@ class TrainConfig:
     (OGBench's relabelled goal reaching, ``Problem.state_goal_reward``), and then no goal
     offset has to absorb how V changes across the goal radius (``docs/pointmaze.md``).  The
     policy then values each neighbour's next state at the query's goal.
+    ``value_head``: what the network's last layer outputs.  ``"value"`` (default, the paper's):
+    V itself, regressed by Eq. (10).  ``"distance"``: the number of steps to the goal ``d``,
+    in horizons ``u = (1 - gamma) d``, with ``V = -(1 - gamma^d) / (1 - gamma)``
+    (:func:`lazyq_jax.networks.distance_to_value`); every target Y is computed as before and
+    the regression fits ``u`` to ``u(Y)`` (:func:`lazyq_jax.networks.value_to_distance`).
+    Exact for a reward of -1 every step until the goal (OGBench's), where a one-step target
+    is ``d(Y) = 1 + d(s')``: far from the goal V saturates near ``-1 / (1 - gamma)`` and the
+    value's regression error hides how far, while the distance's grows linearly.  The idea
+    of learning the steps to the goal rather than a discounted value is QRL's quasimetric
+    (Wang et al. 2023) and HILP's temporal distance (Park et al. 2024); here it is only a
+    reparameterisation of the same V.  It needs rewards in [-1, 0].
     """
 
     gamma: float = 0.9
@@ -212,6 +223,7 @@ class TrainConfig:
     relabel_every: int = 0
     bootstrap_goal: str = "neighbour"
     target_steps: int = 1
+    value_head: str = "value"
 
     def __post_init__(self) -> None:
         _counts(self, "relabel_every", minimum=0)
@@ -234,6 +246,9 @@ class TrainConfig:
                and 0.0 < self.target_expectile < 1.0,
                f"TrainConfig.target_expectile must lie strictly between 0 and 1 (0.5: the mean, "
                f"near 1: the maximum), got {self.target_expectile!r}")
+        _check(self.value_head in ("value", "distance"),
+               f"TrainConfig.value_head must be 'value' (the network outputs V, the paper's) or "
+               f"'distance' (it outputs the steps to the goal, V follows), got {self.value_head!r}")
         _check(self.norm in ("batch", "layer"),
                f"TrainConfig.norm must be 'batch' (the paper's BatchNorm network) or 'layer' "
                f"(OGBench's LayerNorm blocks), got {self.norm!r}")

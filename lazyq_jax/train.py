@@ -44,7 +44,7 @@ from jax.sharding import Mesh, PartitionSpec as P
 
 from lazyq_jax.config import ConfigError, TrainConfig
 from lazyq_jax.local_model import expectile_loss, safe_norm
-from lazyq_jax.networks import ValueNetwork, goal_kind
+from lazyq_jax.networks import ValueNetwork, goal_kind, value_to_distance
 from lazyq_jax.parallel import AXIS, check_divisible, mesh_size
 from lazyq_jax.targets import (bootstrap_table, double_dqn_target, fit_projection, in_sample_target, lazy_target,
                                local_fits, multi_step_transitions)
@@ -137,8 +137,11 @@ def make_train(config: TrainConfig, action_length: float, *, action_set: str = "
     """
     scale = _check_arguments(config, mesh, action_set, state_offsets, goal_offsets, state_scale,
                              state_dim, goal)
-    network = ValueNetwork(width=config.width, depth=config.depth, output_init=config.value_init,
-                           norm=config.norm,
+    distance = config.value_head == "distance"
+    head_init = (float(value_to_distance(config.value_init, config.gamma)[0]) if distance
+                 else config.value_init)
+    network = ValueNetwork(width=config.width, depth=config.depth, output_init=head_init,
+                           norm=config.norm, distance_gamma=config.gamma if distance else None,
                            state_scale=float(scale) if scale.ndim == 0 else tuple(scale.tolist()))
     setup = _Setup(config=config, network=network, optimizer=optax.adam(config.learning_rate),
                    # the training forward pass of one device's share (batch norm synchronised)
@@ -293,13 +296,17 @@ def _targets(setup: _Setup, frozen: TrainState, data: Transitions, paths: Transi
 
 
 def _loss(setup: _Setup, params, batch_stats, s, g, y):
-    """Eq. (10): ``mean((V - Y)^2)`` over the minibatch (or IQL's expectile loss)."""
+    """Eq. (10): ``mean((V - Y)^2)`` over the minibatch (or IQL's expectile loss); with
+    ``value_head="distance"`` the same on the distance head and ``y = u(Y)`` (a target
+    above V is a distance below the head's: the expectile's weights follow the value)."""
+    distance = setup.config.value_head == "distance"
     v, updates = setup.train_network.apply({"params": params, "batch_stats": batch_stats}, s, g,
-                                           train=True, mutable=["batch_stats"])
+                                           train=True, distance=distance, mutable=["batch_stats"])
     if setup.config.loss_expectile == 0.5:  # Eq. (10)
         squared = (v - y) ** 2
     else:  # expectile regression (IQL's)
-        squared = expectile_loss(y - v, v - y, setup.config.loss_expectile)
+        above = v - y if distance else y - v  # >= 0 where the target's value is at or above V
+        squared = expectile_loss(above, v - y, setup.config.loss_expectile)
     return _mean_over_mesh(setup, jnp.mean(squared)), updates.get("batch_stats", batch_stats)
 
 
@@ -378,16 +385,19 @@ def _run_cycle(setup: _Setup, state: TrainState, data: Transitions, idx: jax.Arr
             _, beta_online, _ = _local_fits(setup, state, paths, gamma, idx, weights, projection)
             y, active = double_dqn_target(alpha, beta, beta_online, y_nb, setup.action_length,
                                           config.clip, setup.action_set)
-        state, loss = _epoch(setup, state, data, y, k, n_valid)
+        fit, capped = y, jnp.zeros(y.shape, bool)
+        if config.value_head == "distance":  # the head fits the targets' distances
+            fit, capped = value_to_distance(y, config.gamma)
+        state, loss = _epoch(setup, state, data, fit, k, n_valid)
         if setup.progress is not None:
             jax.debug.callback(setup.progress, e)  # ordered=True needs a single device
         y_mean = masked_mean(y, valid)
         stats = (y_mean, jnp.sqrt(masked_mean((y - y_mean) ** 2, valid)),
-                 masked_mean(active.astype(jnp.float32), valid))
+                 masked_mean(active.astype(jnp.float32), valid), masked_mean(capped.astype(jnp.float32), valid))
         return state, (loss, stats)
 
     epochs = jnp.arange(config.epochs)
-    state, (losses, (y_mean, y_std, clip_frac)) = jax.lax.scan(
+    state, (losses, (y_mean, y_std, clip_frac, capped_frac)) = jax.lax.scan(
         one_epoch, state, (epochs, jax.random.split(k_epochs, config.epochs)))
     state = state.replace(key=key, cycle=state.cycle + 1)
     metrics = {  # targets: those of the last epoch (all epochs' for DQN are the same)
@@ -397,6 +407,8 @@ def _run_cycle(setup: _Setup, state: TrainState, data: Transitions, idx: jax.Arr
         "target_std": y_std[-1],
         "clip_fraction": clip_frac[-1],
     }
+    if config.value_head == "distance":  # targets beyond the distance head's cap
+        metrics["distance_capped_fraction"] = capped_frac[-1]
     if beta is not None:
         metrics["beta_norm_mean"] = masked_mean(safe_norm(beta), valid)
     if setup.probes is not None:

@@ -109,8 +109,9 @@ def test_layer_norm_network_is_ogbenchs_mlp():
 
 
 def test_the_ablations_through_the_cli(tmp_path):
-    """The whole pointmaze task at smoke scale with all three and multi-step targets
-    (``train.target_steps``, tests/test_multi_step.py): trained, checkpointed, evaluated again
-    to the same outcome, reloaded and acting."""
+    """The whole pointmaze task at smoke scale with all three, multi-step targets
+    (``train.target_steps``, tests/test_multi_step.py) and the distance head
+    (``train.value_head``, tests/test_distance_head.py): trained, checkpointed, evaluated
+    again to the same outcome, reloaded and acting."""
     pointmaze_round_trip(tmp_path / "ablation", "train.target_max=next", "train.loss_expectile=0.9",
-                         "train.norm=layer", "train.target_steps=3")
+                         "train.norm=layer", "train.target_steps=3", "train.value_head=distance")

@@ -168,6 +168,18 @@ class LazyAgent(Agent):
                               f"(OGBench's -1); these rows have {step_rewards.size} different ones "
                               f"(e.g. {step_rewards[:3].tolist()}): {fix}")
 
+    def check_value_head(self, data: Transitions, n_valid: int) -> None:
+        """``ConfigError`` when ``train.value_head="distance"`` meets rewards outside [-1, 0]:
+        its head counts the steps to the goal at -1 a step (V between ``-1 / (1 - gamma)``
+        and 0)."""
+        if self.config.train.value_head != "distance":
+            return
+        r = np.asarray(data.r[:int(n_valid)])
+        if r.size and (r.min() < -1.0 or r.max() > 0.0):
+            raise ConfigError(f"train.value_head='distance' counts the steps to the goal at a reward of "
+                              f"-1 a step, so the rewards must lie in [-1, 0]; these lie in "
+                              f"[{r.min():g}, {r.max():g}]: set train.value_head=value")
+
     def check_subgoals(self, data: Transitions) -> None:
         """``ConfigError`` when ``neighbours.subgoal_steps`` cannot apply to ``data``: its
         subgoals are the trajectories' later states, valued as goals."""
@@ -213,6 +225,7 @@ class LazyAgent(Agent):
         goals = self.goals_for(seed, data, n_valid, block)
         if block == 0 or goals:  # the rows' goals as they are, or fresh ones (relabel_every)
             self.check_target_steps(data.replace(**goals), n_valid)
+            self.check_value_head(data.replace(**goals), n_valid)
         data_g = None if self.row_goal else goals.get("g", data.g)  # row goals: state space only
         nc, n = self.config.neighbours, int(n_valid)
         x, data_g = self.search_space(data.s), self.goal_space(data_g)
