@@ -18,6 +18,14 @@ and over the *wall pairs* (the detour round the walls adds >= 20 steps), with 95
 bootstrap intervals over the pairs.  A value that sees the walls ranks the wall pairs like
 ``V*``; one that ignores them like ``V_line``.
 
+The *subgoal ascent* of each evaluation task (``--ascent-steps``, 25 by default: the lazy
+default's ``neighbours.subgoal_steps``): from the free node nearest the task's start, move to
+the node of highest V(node, goal) among all free nodes within that many steps (geodesically),
+until no node there is higher; the steps from where it stops to the goal (geodesic; 0 = the
+goal reached).  The two-level policy idealised: any free position is a subgoal, and the move
+to it is exact.  With ``V*`` it reaches every goal; where a learned V stops short, it has a
+trap at the subgoals' range: no policy that climbs it leaves.
+
 The fits train the value network on ``(s, g) -> V*`` rows with Adam (batch 4096): the
 lazy default (depth 9: 8 hidden layers of 32, batch norm) and 3 hidden layers of 128, ``--fit-steps`` each.  If they see
 the walls where lazy Q's Bellman training does not, the network is not what bounds it.
@@ -143,6 +151,38 @@ def scores(v, v_star, v_line, wall, n_boot: int = 200) -> dict:
             "wall_rho_star": rho(v[wall], v_star[wall]), "wall_rho_line": rho(v[wall], v_line[wall])}
 
 
+def ascent(geo: Geodesic, v: np.ndarray, start: int, reach: float, limit: int = 500) -> int:
+    """The node where the subgoal ascent on node values ``v`` stops, from node ``start``, each
+    move to the highest value within geodesic ``reach`` (grid units); ties keep the current node."""
+    node = start
+    for _ in range(limit):
+        near = np.flatnonzero(geo.lengths[node] <= reach)
+        best = near[np.argmax(v[near])]
+        if v[best] <= v[node]:
+            break
+        node = best
+    return node
+
+
+def ascents(geo: Geodesic, maze, values: dict, gamma: float, steps: int) -> dict:
+    """Steps left to each task's goal where the subgoal ascent of every value stops (and of V*)."""
+    reach = steps * STEP_SCALE / H
+    out = {}
+    for i, (start_ij, goal_ij) in enumerate(maze.tasks):
+        start, goal = maze.ij_to_xy(np.asarray(start_ij)), maze.ij_to_xy(np.asarray(goal_ij))
+        _, first = geo.tree.query(start)
+        _, target = geo.tree.query(goal)
+        goals = np.broadcast_to(goal, geo.nodes.shape).astype(np.float32)
+        models = {"V* (walls, approx.)": value_of(geo.lengths[:, target] * H, gamma)}
+        models.update({name: np.asarray(fn(jnp.asarray(geo.nodes, jnp.float32), jnp.asarray(goals)), np.float64)
+                       for name, fn in values.items()})
+        out[f"task {i + 1}"] = {
+            "start_steps": float(geo.lengths[first, target] * H / STEP_SCALE),
+            "left": {name: float(geo.lengths[ascent(geo, v, first, reach), target] * H / STEP_SCALE)
+                     for name, v in models.items()}}
+    return out
+
+
 def fmt(r) -> str:
     return f"{r[0]:.3f} [{r[1]:.3f}, {r[2]:.3f}]"
 
@@ -155,6 +195,8 @@ def main() -> None:
     p.add_argument("--pairs", type=int, default=20000)
     p.add_argument("--fit-steps", type=int, default=10000)
     p.add_argument("--gamma", type=float, default=0.99)
+    p.add_argument("--ascent-steps", type=int, default=25,
+                   help="the subgoal ascent's reach in steps (0: no ascent table)")
     p.add_argument("--out", default="runs/pointmaze_walls")
     args = p.parse_args()
     out = Path(args.out)
@@ -215,8 +257,18 @@ def main() -> None:
         table[name] = sc = scores(v, v_star, v_line, wall)
         print(f"| {name} | {fmt(sc['rho_star'])} | {fmt(sc['rho_line'])} | {fmt(sc['wall_rho_star'])} | "
               f"{fmt(sc['wall_rho_line'])} |", flush=True)
+    climbs = ascents(geo, maze, values, args.gamma, args.ascent_steps) if args.ascent_steps else {}
+    if climbs:
+        names = list(next(iter(climbs.values()))["left"])
+        print(f"\nsubgoal ascent (reach {args.ascent_steps} steps): steps from its stop to the goal "
+              f"(geodesic; the start's in brackets)")
+        print("| value | " + " | ".join(f"{k} ({c['start_steps']:.0f})" for k, c in climbs.items()) + " |")
+        print("|---|" + "---|" * len(climbs))
+        for name in names:
+            print(f"| {name} | " + " | ".join(f"{c['left'][name]:.0f}" for c in climbs.values()) + " |")
     (out / "walls.json").write_text(json.dumps({"pairs": args.pairs, "wall_fraction": float(wall.mean()),
-                                                "scores": table}, indent=1))
+                                                "scores": table, "ascent_steps": args.ascent_steps,
+                                                "ascents": climbs}, indent=1))
 
     # V over the maze for task 3's goal (round a wall): the optimum and every model
     x0, y0, x1, y1 = maze.bounds
