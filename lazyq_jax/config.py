@@ -59,7 +59,7 @@ BOOTSTRAP_GOALS = ("neighbour", "row")
 #: The settings of the lazy policy's step alone (acting, not training): ``evaluate --set``
 #: and :func:`lazyq_jax.load_run` may change them for a trained run.
 POLICY_FIELDS = ("neighbours.max_level", "neighbours.no_model_action", "neighbours.subgoal_steps",
-                 "neighbours.greedy")
+                 "neighbours.greedy", "neighbours.far_subgoal_steps")
 
 
 def policy_settings(config: "Config") -> dict:
@@ -102,6 +102,11 @@ class NeighbourConfig:
     steps later, by the trained ``V(w, g)``, and takes Eq. (9)'s step towards it (HIQL's
     hierarchy, with the data's states as the subgoals); it needs trajectory data whose goals
     are states, changes acting only, and costs ``3k + 1`` network evaluations a step.
+    ``far_subgoal_steps``: ``0`` (the two levels above) or ``F > subgoal_steps``, three
+    levels: a far subgoal among the states the neighbours' trajectories reached ``F`` steps
+    later, by ``V(w, g)``, then the near subgoal (``subgoal_steps`` later) by ``V(w', w)``,
+    then Eq. (9)'s step towards it: the far level compares values ``F`` steps apart, the near
+    level's goal stays within its reach.  Acting only; ``6k + 2`` network evaluations a step.
     ``greedy``: Eq. (9)'s argmax of the local model ``beta . a`` over the action ``"set"``
     (the paper's: a corner of the box, the ball's boundary) or over the neighbourhood's own
     actions (``"data"``: the neighbour's action the fit values most; the step stays among
@@ -120,6 +125,7 @@ class NeighbourConfig:
     no_model_action: str = "zero"
     subgoal_steps: int = 0
     greedy: str = "set"
+    far_subgoal_steps: int = 0
 
     def __post_init__(self) -> None:
         _check(self.greedy in GREEDY_ACTIONS,
@@ -137,7 +143,11 @@ class NeighbourConfig:
         _check(self.local_model in LOCAL_MODELS,
                f"NeighbourConfig.local_model must be one of {LOCAL_MODELS}, got {self.local_model!r}")
         _counts(self, "k")
-        _counts(self, "max_level", "subgoal_steps", minimum=0)
+        _counts(self, "max_level", "subgoal_steps", "far_subgoal_steps", minimum=0)
+        _check(self.far_subgoal_steps == 0 or self.far_subgoal_steps > self.subgoal_steps > 0,
+               f"NeighbourConfig.far_subgoal_steps must be 0 (two levels) or above subgoal_steps > 0 "
+               f"(a far subgoal before the near one), got far_subgoal_steps={self.far_subgoal_steps} "
+               f"with subgoal_steps={self.subgoal_steps}")
         _positive(self, "radius_s", "radius_g")
         _check(self.growth > 1, f"NeighbourConfig.growth must be > 1, got {self.growth!r}")
 

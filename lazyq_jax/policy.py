@@ -60,6 +60,8 @@ class LazyPolicy:
     goal_features: Callable | None = struct.field(pytree_node=False, default=None)
     # Eq. (9)'s argmax over the action "set" or over the neighbourhood's actions ("data")
     greedy: str = struct.field(pytree_node=False, default="set")
+    # neighbours.far_subgoal_steps = F > 0: a far subgoal F steps ahead before the near one
+    far_subgoal_steps: int = struct.field(pytree_node=False, default=0)
 
 
 def policy_index(data_s, data_g, *, k: int, radius_s: float, radius_g: float, growth: float,
@@ -108,7 +110,7 @@ def neighbour_values(policy: LazyPolicy, rows: jax.Array, g) -> jax.Array:
 
 
 def lazy_subgoals(policy: LazyPolicy, rows: jax.Array, valid: jax.Array, s: jax.Array,
-                  g: jax.Array) -> jax.Array:
+                  g: jax.Array, steps: int | None = None) -> jax.Array:
     """The subgoals ``w [B, d_s]`` of the two-level step (``neighbours.subgoal_steps = H >
     0``): HIQL's hierarchy (Park et al., 2023) made lazy, with no subgoal network, the
     subgoals being the data's own states.
@@ -124,9 +126,11 @@ def lazy_subgoals(policy: LazyPolicy, rows: jax.Array, valid: jax.Array, s: jax.
     compares values one step apart, where a learned V's errors are as large as its
     differences; the subgoal compares values ``H`` steps apart.  Where the query has no
     neighbourhood (``valid`` all false) ``w`` is meaningless and the step is the zero action.
+    ``steps``: ``H`` (default ``policy.subgoal_steps``; the far level's ``far_subgoal_steps``).
     """
     v = partial(policy.value_apply, policy.value_vars)
-    ahead = policy.next_states[jnp.minimum(rows + policy.subgoal_steps - 1, policy.traj_last[rows])]
+    steps = policy.subgoal_steps if steps is None else steps
+    ahead = policy.next_states[jnp.minimum(rows + steps - 1, policy.traj_last[rows])]
     v_ahead = jnp.where(valid, values_at_goals(v, ahead, g), -jnp.inf)
     best = jnp.argmax(v_ahead, axis=1)
     w = jnp.take_along_axis(ahead, best[:, None, None], axis=1)[:, 0]
@@ -166,7 +170,8 @@ def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):
     neighbour query keeps ``key``, so every other step is the same in both modes.
 
     With ``policy.subgoal_steps > 0`` the step is the low level of a two-level policy: its
-    neighbours are valued at a subgoal among the data (:func:`lazy_subgoals`), not at ``g``.
+    neighbours are valued at a subgoal among the data (:func:`lazy_subgoals`), not at ``g``;
+    with ``policy.far_subgoal_steps > 0`` that subgoal is chosen towards a far one.
 
     Returns ``(actions[B, n_a], beta[B, n_a], found[B])``.
     """
@@ -175,6 +180,8 @@ def lazy_policy(policy: LazyPolicy, key: jax.Array, s: jax.Array, g: jax.Array):
     nb = query_policy(policy.index, key, x, None if policy.value_apply is not None else gq)
     rows = jnp.maximum(nb.idx, 0)
     if policy.subgoal_steps > 0:
+        if policy.far_subgoal_steps > 0:  # three levels: the near subgoal heads for a far one
+            g = lazy_subgoals(policy, rows, nb.idx >= 0, s, g, policy.far_subgoal_steps)
         g = lazy_subgoals(policy, rows, nb.idx >= 0, s, g)
     offsets = None if policy.states is None else neighbour_offsets(
         policy.states[rows], s, None if policy.goals is None else policy.goals[rows],

@@ -1,6 +1,6 @@
 """``neighbours.subgoal_steps``: the lazy policy's two-level step (``lazy_subgoals``): the
 subgoal among the neighbours' trajectories against a NumPy brute force, the low level as
-Eq. (9)'s step towards it, the data it needs, the one-level step through the CLI and
+Eq. (9)'s step towards it, the three levels of ``far_subgoal_steps``, the data it needs, the one-level step through the CLI and
 ``evaluate --set`` switching a trained run's step."""
 
 from __future__ import annotations
@@ -114,6 +114,30 @@ def test_the_low_level_is_the_greedy_step_towards_the_subgoal():
     # and it is not the step towards the goal itself (the subgoals differ from the goals)
     a0, _, _ = jax.jit(lazy_policy)(one, key, q, goals)
     assert float(jnp.max(jnp.abs(a0 - a2))) > 0.1
+
+
+def test_the_far_level_picks_the_near_subgoals_goal():
+    """``far_subgoal_steps = F``: the near subgoal is the two-level one asked for the far
+    subgoal, which is the two-level subgoal of horizon F (each level against the brute-force
+    tested ``lazy_subgoals``), and the action is the step towards the near one."""
+    data = _trajectories(seed=6)
+    three = _policy(data).replace(far_subgoal_steps=3 * H)
+    q, goals = _queries(seed=7)
+    key = jax.random.PRNGKey(2)
+    nb = query_policy(three.index, key, q, None)
+    rows, valid = jnp.maximum(nb.idx, 0), nb.idx >= 0
+    far = lazy_subgoals(_policy(data, steps=3 * H), rows, valid, q, goals)
+    near = lazy_subgoals(_policy(data), rows, valid, q, far)
+    a3, b3, _ = jax.jit(lazy_policy)(three, key, q, goals)
+    a1, b1, _ = jax.jit(lazy_policy)(_policy(data, steps=0), key, q, near)
+    np.testing.assert_allclose(np.asarray(b3), np.asarray(b1), rtol=1e-4, atol=1e-4 * float(jnp.abs(b1).max()))
+    # the far level changes the subgoals of some queries (else the test shows nothing)
+    two = lazy_subgoals(_policy(data), rows, valid, q, goals)
+    assert float(jnp.max(jnp.abs(near - two))) > 0.1
+    with pytest.raises(ConfigError, match="far_subgoal_steps must be 0"):
+        NeighbourConfig(subgoal_steps=25, far_subgoal_steps=25)
+    with pytest.raises(ConfigError, match="far_subgoal_steps must be 0"):
+        NeighbourConfig(subgoal_steps=0, far_subgoal_steps=100)
 
 
 def test_subgoals_need_trajectories_whose_goals_are_states():

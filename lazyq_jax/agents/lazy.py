@@ -341,7 +341,8 @@ class LazyAgent(Agent):
                           states, goals, kernel, nc.no_model_action, next_states, value_vars,
                           self.value_apply, self.subgoal_steps,
                           data.traj_last if self.subgoal_steps else None,
-                          None if self.per_step else self.problem.goal_features, nc.greedy)
+                          None if self.per_step else self.problem.goal_features, nc.greedy,
+                          nc.far_subgoal_steps)
 
     def act(self, policy: LazyPolicy):
         return lambda key, s, g: lazy_policy(policy, key, s, g)[0]
