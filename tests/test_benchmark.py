@@ -122,3 +122,24 @@ def test_benchmark_adds_seeds_as_a_group(tmp_path):
     assert out.returncode == 0, out.stderr[-3000:]
     assert (tmp_path / "archived" / DATASETS[0] / "seeds-1" / "results.json").is_file()
     assert suite.table(tmp_path / "archived", "x")["datasets"] == suite.table(run_dir, "x")["datasets"]
+
+    # re-evaluated with other policy settings (evaluate --set records them as "acting"): one
+    # seed group alone is refused, the first dataset's both groups label its cell, every
+    # dataset the column's head
+    def acting(path, settings):
+        results = json.loads((path / "results.json").read_text())
+        results["methods"]["lazy"]["acting"] = settings
+        (path / "results.json").write_text(json.dumps(results))
+
+    far = {"neighbours.far_subgoal_steps": 100}
+    acting(group, far)
+    with pytest.raises(RunDirError, match="evaluate every seed group alike"):
+        suite.table(run_dir)
+    acting(first, far)
+    rows = suite.markdown(suite.table(run_dir)).splitlines()
+    assert rows[0] == "| dataset | lazy | best published |"
+    assert "(neighbours.far_subgoal_steps=100)" in rows[2] and "far_subgoal" not in rows[3]
+    acting(run_dir / DATASETS[1], far)
+    rows = suite.markdown(suite.table(run_dir)).splitlines()
+    assert rows[0] == "| dataset | lazy (neighbours.far_subgoal_steps=100) | best published |"
+    assert "far_subgoal" not in rows[2] + rows[3]

@@ -9,7 +9,10 @@ method's ``method.json`` and ``timings.json``) holding the first group, each lat
 below it (:func:`group_dir`), so ``report --archive`` copies work as well as live runs.  A
 dataset's row pools the seeds of its groups that have a ``results.json``; datasets with none
 yet are listed as pending.  The rate is the task's first (:attr:`~lazyq_jax.tasks.base.Task.rates`), the
-published numbers the task's (:attr:`~lazyq_jax.tasks.base.Task.published`).
+published numbers the task's (:attr:`~lazyq_jax.tasks.base.Task.published`).  A method
+re-evaluated with other policy settings (``evaluate --set``: its results' ``acting``) is
+labelled with them, in its column's head where every dataset has the same, else in its cells;
+seed groups of one dataset evaluated differently are refused.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ from pathlib import Path
 from typing import Sequence
 
 from lazyq_jax import tasks
-from lazyq_jax.run.results import CI
+from lazyq_jax.run.results import CI, method_label
 from lazyq_jax.run.rundir import RunDirError, parse_method, write_json
 from lazyq_jax.stats import format_ci, t_interval
 
@@ -59,11 +62,16 @@ def _steps(method_dir: Path, timings: dict) -> tuple[int, int] | None:
 
 def _method(runs: Sequence[tuple[Path, dict]], name: str, key: str) -> dict | None:
     """Method ``name``'s entry pooled over the seed groups ``runs`` (``(run_dir, results)``)."""
-    rows, seconds, steps = [], [], []
+    rows, seconds, steps, acting = [], [], [], {}
     for run_dir, results in runs:
         m = results["methods"].get(name)
         if m is None:
             continue
+        if rows and m.get("acting", {}) != acting:
+            raise RunDirError(f"{run_dir}: {name} was evaluated with the policy settings {m.get('acting', {})}, "
+                              f"its other seeds with {acting}: evaluate every seed group alike "
+                              "(python -m lazyq_jax evaluate --run-dir DIR --set ...)")
+        acting = m.get("acting", {})
         rows += m["per_seed"]
         timings = m.get("timings", {})
         seconds.append((timings["train_s"] + timings.get("prepare_s", 0.0)) if timings.get("train_s") else None)
@@ -73,7 +81,7 @@ def _method(runs: Sequence[tuple[Path, dict]], name: str, key: str) -> dict | No
     values = [row.get(key) for row in rows]
     ok = all(isinstance(v, (int, float)) and math.isfinite(v) for v in values)
     return {"rate": t_interval(values, bounds=(0.0, 1.0)) if ok else None,
-            "seeds": [row["seed"] for row in rows],
+            "seeds": [row["seed"] for row in rows], "acting": acting,
             "steps": steps[0] if len(set(steps)) == 1 else None,
             "train_s_per_seed": sum(seconds) / len(rows) if None not in seconds else None}
 
@@ -124,7 +132,11 @@ def markdown(data: dict) -> str:
     seeds, OGBench's published mean in parentheses), the best published number; under it the
     budgets as shares of the published budget and the command."""
     methods = data["methods"]
-    lines = ["| dataset | " + " | ".join(methods) + " | best published |", "|---" * (len(methods) + 2) + "|"]
+    actings = {m: {json.dumps(d["methods"][m].get("acting", {}), sort_keys=True) for d in data["datasets"]
+                   if not d["pending"] and d["methods"].get(m)} for m in methods}
+    shared = {m: json.loads(a.pop()) if len(a) == 1 else None for m, a in actings.items()}
+    heads = [method_label(m, shared[m]) for m in methods]
+    lines = ["| dataset | " + " | ".join(heads) + " | best published |", "|---" * (len(methods) + 2) + "|"]
     budgets: dict[str, set] = {m: set() for m in methods}
     shares: dict[str, set] = {m: set() for m in methods}
     for d in data["datasets"]:
@@ -135,6 +147,8 @@ def markdown(data: dict) -> str:
             n = len(r["seeds"]) if r and r["rate"] else 0
             if n and (n == 1 or n < len(data["seeds"])):  # fewer seeds than the suite's: said in the cell
                 ours += f" ({n} seed{'s' if n > 1 else ''})"
+            if r and shared[m] is None and r.get("acting"):  # the column's datasets differ
+                ours += " (" + ", ".join(f"{k}={v}" for k, v in r["acting"].items()) + ")"
             pub = d["published"].get(parse_method(m).name)
             cells.append(ours + ("" if pub is None else f" ({pub[0]:g})"))
             if r and r["steps"]:
