@@ -106,7 +106,8 @@ class NeighbourConfig:
     levels: a far subgoal among the states the neighbours' trajectories reached ``F`` steps
     later, by ``V(w, g)``, then the near subgoal (``subgoal_steps`` later) by ``V(w', w)``,
     then Eq. (9)'s step towards it: the far level compares values ``F`` steps apart, the near
-    level's goal stays within its reach.  Acting only; ``6k + 2`` network evaluations a step.
+    level's goal stays within its reach.  Acting only; ``6k + 2`` network evaluations a step;
+    unused by the one-level step (``subgoal_steps = 0``).
     ``greedy``: Eq. (9)'s argmax of the local model ``beta . a`` over the action ``"set"``
     (the paper's: a corner of the box, the ball's boundary) or over the neighbourhood's own
     actions (``"data"``: the neighbour's action the fit values most; the step stays among
@@ -144,10 +145,11 @@ class NeighbourConfig:
                f"NeighbourConfig.local_model must be one of {LOCAL_MODELS}, got {self.local_model!r}")
         _counts(self, "k")
         _counts(self, "max_level", "subgoal_steps", "far_subgoal_steps", minimum=0)
-        _check(self.far_subgoal_steps == 0 or self.far_subgoal_steps > self.subgoal_steps > 0,
-               f"NeighbourConfig.far_subgoal_steps must be 0 (two levels) or above subgoal_steps > 0 "
+        _check(self.far_subgoal_steps == 0 or self.subgoal_steps == 0
+               or self.far_subgoal_steps > self.subgoal_steps,
+               f"NeighbourConfig.far_subgoal_steps must be 0 (two levels) or above subgoal_steps "
                f"(a far subgoal before the near one), got far_subgoal_steps={self.far_subgoal_steps} "
-               f"with subgoal_steps={self.subgoal_steps}")
+               f"with subgoal_steps={self.subgoal_steps}: set neighbours.far_subgoal_steps too")
         _positive(self, "radius_s", "radius_g")
         _check(self.growth > 1, f"NeighbourConfig.growth must be > 1, got {self.growth!r}")
 

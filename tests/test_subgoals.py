@@ -137,7 +137,12 @@ def test_the_far_level_picks_the_near_subgoals_goal():
     with pytest.raises(ConfigError, match="far_subgoal_steps must be 0"):
         NeighbourConfig(subgoal_steps=25, far_subgoal_steps=25)
     with pytest.raises(ConfigError, match="far_subgoal_steps must be 0"):
-        NeighbourConfig(subgoal_steps=0, far_subgoal_steps=100)
+        NeighbourConfig(subgoal_steps=150, far_subgoal_steps=100)
+    # the one-level step has no subgoals: the far level is unused, the same step
+    one = _policy(data, steps=0)
+    np.testing.assert_array_equal(np.asarray(jax.jit(lazy_policy)(one.replace(far_subgoal_steps=3 * H), key, q, goals)[0]),
+                                  np.asarray(jax.jit(lazy_policy)(one, key, q, goals)[0]))
+    NeighbourConfig(subgoal_steps=0, far_subgoal_steps=100)  # accepted: evaluate --set subgoal_steps=0
 
 
 def test_subgoals_need_trajectories_whose_goals_are_states():
