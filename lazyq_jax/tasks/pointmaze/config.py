@@ -99,9 +99,12 @@ def check(config: Config) -> None:
 # 42.0 % for the one-level step on the same trained V (docs/pointmaze.md).  The targets take
 # each neighbour's return over up to 10 steps of its own trajectory (train.target_steps): the
 # one-step target kept V on the straight line through the walls; with 10 steps V ranks the
-# pairs across walls like V* (docs/pointmaze.md, "Multi-step lazy targets").
+# pairs across walls like V* (docs/pointmaze.md, "Multi-step lazy targets").  The near subgoal
+# heads for a far one, among the states the neighbours' trajectories reached 100 steps later
+# (neighbours.far_subgoal_steps): the two-level step stopped at V's local maxima 25 steps
+# wide on the large and giant mazes (docs/pointmaze.md, "Where the policy stops").
 _NEIGHBOURS = NeighbourConfig(k=20, radius_s=0.5, radius_g=1.0, max_level=8,
-                              local_model="action+state+goal", subgoal_steps=25)
+                              local_model="action+state+goal", subgoal_steps=25, far_subgoal_steps=100)
 _TRAIN = TrainConfig(gamma=0.99, cycles=300, epochs=1, batch_size=4096, learning_rate=1e-3,
                      target_steps=10)
 _SMOKE_TRAIN = TrainConfig(gamma=0.99, cycles=3, epochs=1, batch_size=256, target_batch_size=4096,
