@@ -67,7 +67,9 @@ class Trainer(NamedTuple):
     network: ValueNetwork
     optimizer: optax.GradientTransformation
     init: Callable
-    epoch: Callable  # epoch(state, data, y, key, n_valid) -> (state, mean loss): one shuffled pass
+    # epoch(state, data, y, key, n_valid) -> (state, mean loss): one shuffled pass towards y, the
+    # regression's targets (V's; with value_head="distance" their distances, value_to_distance)
+    epoch: Callable
     run_cycle: Callable
     train: Callable
     value_fn: Callable  # value_fn(state) -> V(s[B, d_s], g) in inference mode
