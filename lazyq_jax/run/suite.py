@@ -148,7 +148,7 @@ def markdown(data: dict) -> str:
             if n and (n == 1 or n < len(data["seeds"])):  # fewer seeds than the suite's: said in the cell
                 ours += f" ({n} seed{'s' if n > 1 else ''})"
             if r and shared[m] is None and r.get("acting"):  # the column's datasets differ
-                ours += " (" + ", ".join(f"{k}={v}" for k, v in r["acting"].items()) + ")"
+                ours += method_label("", r["acting"])
             pub = d["published"].get(parse_method(m).name)
             cells.append(ours + ("" if pub is None else f" ({pub[0]:g})"))
             if r and r["steps"]:
